@@ -1,0 +1,15 @@
+"""nodegraph: typed dataflow graphs for facial performance capture."""
+
+from .errors import GraphError, GraphIssue, InputError, NodeError, NodegraphError
+from .node import FRAMEWISE, SEQUENCE, In, Kind, Node, NodeParams, Out, Param, run_node, windowed
+from .types import (FaceModel, Files, FlowSequence, ImageSequence, JsonValue, Landmarks2D,
+                    MeshSequence, ParamSequence, PortType, RigidSequence, Table, TorchModel)
+
+__all__ = [
+    "GraphError", "GraphIssue", "InputError", "NodeError", "NodegraphError",
+    "FRAMEWISE", "SEQUENCE", "In", "Kind", "Node", "NodeParams", "Out", "Param", "run_node",
+    "windowed", "FaceModel", "Files", "FlowSequence", "ImageSequence", "JsonValue",
+    "Landmarks2D", "MeshSequence", "ParamSequence", "PortType", "RigidSequence", "Table",
+    "TorchModel",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,374 @@
+"""The `Node` base: typed ports, a pydantic `Params` model, a version, an execution kind.
+
+A node is written as a class::
+
+    class ScaleMesh(Node):
+        '''Scale every vertex about the origin.'''
+        type_name = "example.ScaleMesh"
+        version = 1
+        kind = FRAMEWISE
+
+        class Params(NodeParams):
+            factor: float = Param(1.0, gt=0, description="Scale factor (unitless).")
+
+        mesh = In(MeshSequence, doc="Mesh to scale.")
+        scaled = Out(MeshSequence)
+
+        def run(self, mesh: MeshSequence) -> dict:
+            return {"scaled": dataclasses.replace(mesh, vertices=mesh.vertices * self.params.factor)}
+
+`run` receives only its input values (None for an unconnected optional input) and reads
+`self.params`; `self.frames` is the absolute frame range of the values it received
+(for windowed nodes: the chunk plus its halo) and `self.full_frames` the range of the whole
+run. It returns a dict keyed by output port. Caching, chunking and devices belong to the
+runner. Bad input data is reported by raising `InputError(port, message)`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import sys
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, ClassVar, Mapping
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .errors import InputError, NodeError
+from .types import PortType
+
+__all__ = [
+    "Kind", "FRAMEWISE", "SEQUENCE", "windowed", "In", "Out", "Node", "NodeParams", "Param",
+    "run_node", "execute", "format_validation_error",
+]
+
+
+@dataclass(frozen=True)
+class Kind:
+    """How a node may be split over frames.
+
+    Attributes:
+        name: "framewise" (any chunk alone), "windowed" (a chunk plus `halo` frames each
+            side) or "sequence" (all frames at once).
+        halo: frames of context each side, for "windowed".
+    """
+
+    name: str
+    halo: int = 0
+
+    def __str__(self) -> str:
+        return f"windowed(halo={self.halo})" if self.name == "windowed" else self.name
+
+
+FRAMEWISE = Kind("framewise")
+SEQUENCE = Kind("sequence")
+
+
+def windowed(halo: int) -> Kind:
+    """Return the windowed kind with `halo` frames of context on each side of a chunk."""
+    if halo < 0:
+        raise ValueError(f"windowed: halo must be >= 0, found {halo}")
+    return Kind("windowed", int(halo))
+
+
+class In:
+    """Declares an input port.
+
+    Args:
+        type: the port type class.
+        optional: the input may be left unconnected (the node then receives None).
+        per_frame: for per-frame types, False means the port takes the whole value unchunked
+            (e.g. a one-frame rest mesh); None follows the type.
+        doc: one line for `nodegraph nodes`.
+    """
+
+    def __init__(self, type: type[PortType], *, optional: bool = False,
+                 per_frame: bool | None = None, doc: str = ""):
+        self.type = type
+        self.optional = optional
+        self.per_frame = type.per_frame if per_frame is None else (per_frame and type.per_frame)
+        self.doc = doc
+        self.name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+
+class Out(In):
+    """Declares an output port (same arguments as `In`, without `optional`)."""
+
+    def __init__(self, type: type[PortType], *, per_frame: bool | None = None, doc: str = ""):
+        super().__init__(type, per_frame=per_frame, doc=doc)
+
+
+class NodeParams(BaseModel):
+    """Base of every node's parameter model: unknown names are errors; values are frozen."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def Param(default: Any = ..., *, description: str = "", affects_output: bool = True,
+          input_file: bool = False, **constraints: Any) -> Any:
+    """Declare a parameter field.
+
+    Args:
+        default: default value (`...` for required).
+        description: meaning and units, shown by `nodegraph nodes`.
+        affects_output: False for parameters that cannot change results (logging, device);
+            they are left out of the cache key.
+        input_file: the value is a path (or pattern) of a file the node reads; the cache key
+            holds the files' content hash instead of the path.
+        constraints: pydantic bounds (`ge`, `gt`, `le`, `lt`, `min_length`, ...).
+    """
+    extra = {"affects_output": affects_output, "input_file": input_file}
+    if isinstance(default, (list, dict)):
+        value = default
+        return Field(default_factory=lambda: type(value)(value), description=description,
+                     json_schema_extra=extra, **constraints)
+    return Field(default, description=description, json_schema_extra=extra, **constraints)
+
+
+def _field_flag(model: type[BaseModel], name: str, flag: str, default: bool) -> bool:
+    extra = model.model_fields[name].json_schema_extra
+    return bool(extra.get(flag, default)) if isinstance(extra, dict) else default
+
+
+def format_validation_error(err: ValidationError) -> list[tuple[str, str]]:
+    """Turn a pydantic error into (parameter name, message) pairs."""
+    out = []
+    for item in err.errors():
+        loc = ".".join(str(x) for x in item.get("loc", ())) or "params"
+        msg = item.get("msg", "invalid")
+        if item.get("type") == "extra_forbidden":
+            msg = "unknown parameter"
+        out.append((loc, f"{msg} (found {item.get('input')!r})" if "input" in item and
+                    item.get("type") != "missing" else msg))
+    return out
+
+
+class Node:
+    """Base class of every node type (see the module docstring)."""
+
+    type_name: ClassVar[str] = ""
+    version: ClassVar[int] = 1
+    kind: ClassVar[Kind] = FRAMEWISE
+    cacheable: ClassVar[bool] = True
+    Params: ClassVar[type[NodeParams]] = NodeParams
+    inputs: ClassVar[dict[str, In]] = {}
+    outputs: ClassVar[dict[str, Out]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        ins: dict[str, In] = {}
+        outs: dict[str, Out] = {}
+        for klass in reversed(cls.__mro__):
+            for name, value in vars(klass).items():
+                if isinstance(value, Out):
+                    outs[name] = value
+                elif isinstance(value, In):
+                    ins[name] = value
+        cls.inputs, cls.outputs = ins, outs
+        if cls.__dict__.get("type_name"):
+            from . import registry
+
+            registry.register(cls)
+
+    def __init__(self, params: NodeParams | Mapping[str, Any] | None = None, *,
+                 node_id: str = "", **kwargs: Any):
+        self.node_id = node_id or self.type_name or type(self).__name__
+        if isinstance(params, NodeParams):
+            if kwargs:
+                params = params.model_copy(update=kwargs)
+        else:
+            values = {**dict(params or {}), **kwargs}
+            try:
+                params = self.Params(**values)
+            except ValidationError as err:
+                problems = "; ".join(f"'{k}': {m}" for k, m in format_validation_error(err))
+                raise NodeError(self.node_id, self.type_name, f"invalid parameters: {problems}",
+                                bad_input=True) from err
+        self.params = params
+        self.frames: range = range(0)
+        self.full_frames: range = range(0)
+        self._progress: Callable[[float, str], None] | None = None
+
+    # -- hooks a node type may override -----------------------------------------------
+    def run(self, **inputs: Any) -> Mapping[str, PortType]:
+        """Compute the outputs from the inputs (see the module docstring)."""
+        raise NotImplementedError(f"{type(self).__name__}.run")
+
+    @classmethod
+    def migrate(cls, from_version: int, params: dict[str, Any]) -> dict[str, Any]:
+        """Return `params` written for `from_version` rewritten for `cls.version`.
+
+        The default accepts old versions whose parameters are still valid unchanged.
+        Override to rename or convert parameters; raise ValueError when impossible.
+        """
+        return dict(params)
+
+    def frame_count(self) -> int | None:
+        """For source nodes (no per-frame inputs): how many frames they can produce, or None."""
+        return None
+
+    def input_files(self) -> list[Path]:
+        """Files this node reads (their contents enter the cache key).
+
+        Default: the values of parameters declared with `input_file=True` that exist.
+        """
+        files = []
+        for name in self.Params.model_fields:
+            if _field_flag(self.Params, name, "input_file", False):
+                value = getattr(self.params, name)
+                if value and Path(str(value)).is_file():
+                    files.append(Path(str(value)))
+        return files
+
+    # -- helpers for run() -------------------------------------------------------------
+    def progress(self, fraction: float, message: str = "") -> None:
+        """Report progress within a long `run` (0..1); shown by the runner."""
+        if self._progress is not None:
+            self._progress(float(fraction), message)
+
+    # -- introspection -------------------------------------------------------------------
+    @classmethod
+    def code_hash(cls) -> str:
+        """sha256 of the source of the module defining the node (part of the cache key)."""
+        cached = cls.__dict__.get("_code_hash")
+        if cached:
+            return cached
+        module = sys.modules.get(cls.__module__)
+        try:
+            source = inspect.getsource(module) if module else inspect.getsource(cls)
+        except (OSError, TypeError):
+            source = f"{cls.__module__}.{cls.__qualname__}"
+        digest = hashlib.sha256(source.encode()).hexdigest()
+        cls._code_hash = digest
+        return digest
+
+    def key_params(self) -> dict[str, Any]:
+        """Parameters that enter the cache key, as JSON-able values (input paths removed)."""
+        data = self.params.model_dump(mode="json")
+        out = {}
+        for name, value in data.items():
+            if not _field_flag(self.Params, name, "affects_output", True):
+                continue
+            if _field_flag(self.Params, name, "input_file", False):
+                continue
+            out[name] = value
+        return out
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(node_id={self.node_id!r}, params={self.params!r})"
+
+
+def _where(node: Node, chunk: range) -> tuple[int, int] | None:
+    return (chunk.start, chunk.stop) if node.kind != SEQUENCE else None
+
+
+def _check_value(node: Node, port: In, value: Any, expected_frames: int | None, direction: str,
+                 chunk: range) -> None:
+    if not isinstance(value, port.type):
+        raise NodeError(node.node_id, node.type_name,
+                        f"{direction} expected {port.type.type_name}, found {type(value).__name__}",
+                        port=port.name, frames=_where(node, chunk), bad_input=direction == "input")
+    try:
+        value.validate(f"{port.type.type_name}")
+    except ValueError as err:
+        raise NodeError(node.node_id, node.type_name, f"{direction} {err}", port=port.name,
+                        frames=_where(node, chunk), bad_input=direction == "input") from err
+    if port.per_frame and expected_frames is not None and value.num_frames != expected_frames:
+        raise NodeError(node.node_id, node.type_name,
+                        f"{direction} expected {expected_frames} frames, found {value.num_frames}",
+                        port=port.name, frames=_where(node, chunk), bad_input=direction == "input")
+
+
+def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: range,
+            progress: Callable[[float, str], None] | None = None) -> dict[str, PortType]:
+    """Run `node` on values covering `frames`, checking inputs and outputs.
+
+    Args:
+        node: the node instance.
+        inputs: port name -> value (per-frame values cover exactly `frames`).
+        frames: absolute frame range of the per-frame inputs and outputs.
+        full_frames: the range of the whole run.
+        progress: optional callback (fraction, message).
+    Returns:
+        port name -> value.
+    Raises:
+        NodeError: naming node, port and frames; `bad_input` tells input problems (exit 2)
+            from crashes (exit 1). The original exception is the `__cause__`.
+    """
+    count = len(frames)
+    for name, port in node.inputs.items():
+        value = inputs.get(name)
+        if value is None:
+            if not port.optional:
+                raise NodeError(node.node_id, node.type_name, "required input is missing",
+                                port=name, frames=_where(node, frames), bad_input=True)
+            continue
+        _check_value(node, port, value, count, "input", frames)
+    unknown = set(inputs) - set(node.inputs)
+    if unknown:
+        raise NodeError(node.node_id, node.type_name, f"unknown input(s) {sorted(unknown)}; "
+                        f"inputs are {sorted(node.inputs)}", bad_input=True)
+    node.frames, node.full_frames, node._progress = frames, full_frames, progress
+    try:
+        result = node.run(**{name: inputs.get(name) for name in node.inputs})
+    except NodeError:
+        raise
+    except InputError as err:
+        raise NodeError(node.node_id, node.type_name, err.message, port=err.port,
+                        frames=_where(node, frames), bad_input=True) from err
+    except Exception as err:
+        raise NodeError(node.node_id, node.type_name, f"{type(err).__name__}: {err}",
+                        frames=_where(node, frames)) from err
+    finally:
+        node._progress = None
+    if not isinstance(result, Mapping):
+        raise NodeError(node.node_id, node.type_name,
+                        f"run() must return a dict of outputs, found {type(result).__name__}")
+    missing = set(node.outputs) - set(result)
+    extra = set(result) - set(node.outputs)
+    if missing or extra:
+        raise NodeError(node.node_id, node.type_name,
+                        f"run() returned ports {sorted(result)}, declared {sorted(node.outputs)}")
+    for name, port in node.outputs.items():
+        _check_value(node, port, result[name], count, "output", frames)
+    return dict(result)
+
+
+def run_node(node_type: type[Node] | Node, params: NodeParams | Mapping[str, Any] | None = None,
+             *, frames: range | None = None, **inputs: Any) -> dict[str, PortType]:
+    """Run one node in-process (no dask, no cache): the helper for unit tests and scripts.
+
+    Args:
+        node_type: a Node subclass (or an instance, then `params` must be None).
+        params: parameters (dict or the node's Params model).
+        frames: absolute frames the per-frame inputs cover; default: 0..F-1 from the first
+            per-frame input, else the node's `frame_count()`.
+        inputs: input values by port name.
+    Returns:
+        output port name -> value.
+
+    Example:
+        >>> out = run_node(ScaleMesh, {"factor": 2.0}, mesh=mesh)  # doctest: +SKIP
+    """
+    node = node_type if isinstance(node_type, Node) else node_type(params)
+    if frames is None:
+        count = None
+        for name, port in node.inputs.items():
+            value = inputs.get(name)
+            if port.per_frame and isinstance(value, PortType) and value.per_frame:
+                count = value.num_frames
+                break
+        if count is None:
+            count = node.frame_count() or 0
+        frames = range(count)
+    return execute(node, inputs, frames, frames)
+
+
+def format_exception(err: BaseException) -> str:
+    """The traceback text of `err` (with its causes)."""
+    return "".join(traceback.format_exception(type(err), err, err.__traceback__))

@@ -1,0 +1,69 @@
+"""Node types by stable name: built-ins and third-party plugins.
+
+Node classes with a `type_name` register themselves when their module is imported. Modules
+are found through the `nodegraph.nodes` entry-point group: nodegraph's own `nodes` package
+is one such plugin, declared in pyproject.toml, so the framework never imports it directly.
+A third-party package adds nodes by declaring, in its own pyproject.toml::
+
+    [project.entry-points."nodegraph.nodes"]
+    mystudio = "mystudio.nodes"
+"""
+
+from __future__ import annotations
+
+import difflib
+from importlib.metadata import entry_points
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .node import Node
+
+__all__ = ["register", "get", "all_types", "load_plugins", "ENTRY_POINT_GROUP"]
+
+ENTRY_POINT_GROUP = "nodegraph.nodes"
+
+_TYPES: dict[str, type["Node"]] = {}
+_PLUGINS_LOADED = False
+
+
+def register(cls: type["Node"]) -> type["Node"]:
+    """Register a node class under `cls.type_name`; a second, different class is an error."""
+    name = cls.type_name
+    known = _TYPES.get(name)
+    if known is not None and (known.__module__, known.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(f"node type '{name}' registered twice: {known.__module__}.{known.__qualname__} "
+                         f"and {cls.__module__}.{cls.__qualname__}")
+    _TYPES[name] = cls
+    return cls
+
+
+def load_plugins() -> None:
+    """Import every module of the `nodegraph.nodes` entry-point group (once)."""
+    global _PLUGINS_LOADED
+    if _PLUGINS_LOADED:
+        return
+    _PLUGINS_LOADED = True
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        ep.load()
+
+
+def get(name: str) -> type["Node"]:
+    """Return the node class registered as `name`.
+
+    Raises:
+        KeyError: naming the unknown type and the closest known names.
+    """
+    if name not in _TYPES:
+        load_plugins()
+    try:
+        return _TYPES[name]
+    except KeyError:
+        close = difflib.get_close_matches(name, list(_TYPES), n=3)
+        hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+        raise KeyError(f"unknown node type '{name}'{hint}") from None
+
+
+def all_types() -> dict[str, type["Node"]]:
+    """Every registered node type by name, plugins included."""
+    load_plugins()
+    return dict(sorted(_TYPES.items()))
