@@ -1,0 +1,441 @@
+"""Run a plan on dask: any local scheduler or a `dask.distributed` cluster.
+
+Every task catches its own failure and returns it as a record, so one failing node never
+stops independent branches; tasks below a failure are skipped. The run then reports each
+failed chunk (node id, frames, exception, traceback, input keys) and ends non-zero.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Mapping
+
+from .cache import Cache, CorruptEntry, cache_dir_from_env
+from .errors import NodeError
+from .graph import Graph
+from .node import Node, execute, format_exception
+from .schedule import Plan, TaskPlan, explain_miss, plan_run
+from .types import PortType
+
+__all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "SCHEDULERS"]
+
+SCHEDULERS = ("sync", "threads", "processes")
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """Everything a worker needs to run one task (plain data plus the node class)."""
+
+    name: str
+    node: str
+    node_cls: type[Node]
+    params: dict[str, Any]
+    frames: tuple[int, int]
+    out_frames: tuple[int, int]
+    full_frames: tuple[int, int]
+    inputs: tuple[tuple[str, tuple[tuple[int, str, int, int], ...]], ...]
+    key: str
+    description: dict[str, Any]
+    cache_root: str | None
+    cacheable: bool
+    progress: str
+
+
+@dataclass
+class TaskResult:
+    """What a task returns: its values, or why it has none."""
+
+    name: str
+    node: str
+    frames: tuple[int, int]
+    status: str  # executed | cached | failed | skipped | corrupt
+    values: dict[str, PortType] | None = None
+    error: dict[str, Any] | None = None
+    seconds: float = 0.0
+
+    def meta(self) -> dict[str, Any]:
+        return {"name": self.name, "node": self.node, "frames": list(self.frames), "status": self.status,
+                "error": self.error, "seconds": self.seconds}
+
+
+def _progress_callback(spec: TaskSpec) -> Callable[[float, str], None] | None:
+    if spec.progress == "none":
+        return None
+    last = [0.0]
+
+    def report(fraction: float, message: str) -> None:
+        now = time.monotonic()
+        if now - last[0] < 1.0 and fraction < 1.0:
+            return
+        last[0] = now
+        if spec.progress == "json":
+            print(json.dumps({"event": "progress", "node": spec.node, "frames": list(spec.out_frames),
+                              "fraction": round(fraction, 4), "message": message}), file=sys.stderr, flush=True)
+        else:
+            print(f"  {spec.node} [{spec.out_frames[0]}:{spec.out_frames[1]}] {100 * fraction:5.1f}% {message}",
+                  file=sys.stderr, flush=True)
+    return report
+
+
+def _trim(node: Node, values: dict[str, PortType], frames: tuple[int, int],
+          out: tuple[int, int]) -> dict[str, PortType]:
+    if frames == out:
+        return values
+    a, b = out[0] - frames[0], out[1] - frames[0]
+    return {port: (value.slice_frames(a, b) if node.outputs[port].per_frame else value)
+            for port, value in values.items()}
+
+
+def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
+    """Run one task on its upstream results (dask calls this in a worker)."""
+    start = time.perf_counter()
+    bad = [d for d in deps if d.status not in ("executed", "cached")]
+    if bad:
+        return TaskResult(spec.name, spec.node, spec.out_frames, "skipped",
+                          error={"cause": f"upstream {bad[0].name} {bad[0].status}"})
+    node = None
+    try:
+        node = spec.node_cls(spec.params, node_id=spec.node)
+        inputs: dict[str, PortType] = {}
+        for port, pieces in spec.inputs:
+            parts = []
+            for dep_index, out_port, lo, hi in pieces:
+                value = deps[dep_index].values[out_port]
+                parts.append(value if lo < 0 else value.slice_frames(lo, hi))
+            inputs[port] = parts[0] if len(parts) == 1 else type(parts[0]).concat_frames(parts)
+        values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec))
+        values = _trim(node, values, spec.frames, spec.out_frames)
+    except Exception as err:
+        error = err if isinstance(err, NodeError) else NodeError(
+            spec.node, spec.node_cls.type_name, f"{type(err).__name__}: {err}")
+        record = {
+            "node": spec.node, "type": spec.node_cls.type_name,
+            "frames": list(spec.out_frames) if spec.name.split("|")[1] != "all" else None,
+            "key": spec.key, "exception": type(err.__cause__ or err).__name__, "message": str(error),
+            "port": getattr(error, "port", ""), "bad_input": bool(getattr(error, "bad_input", False)),
+            "traceback": format_exception(err),
+            "input_keys": {port: [spec.description["inputs"][port][i][0] for i in range(len(pieces))]
+                           for port, pieces in spec.inputs},
+            "time": time.time(),
+        }
+        return TaskResult(spec.name, spec.node, spec.out_frames, "failed", error=record,
+                          seconds=time.perf_counter() - start)
+    if spec.cacheable and spec.cache_root is not None:
+        try:
+            Cache(spec.cache_root).store(spec.key, values, spec.description)
+        except OSError as err:
+            print(f"warning: could not cache {spec.name}: {err}", file=sys.stderr)
+    return TaskResult(spec.name, spec.node, spec.out_frames, "executed", values,
+                      seconds=time.perf_counter() - start)
+
+
+def load_task(spec: TaskSpec) -> TaskResult:
+    """Read a task's values from the cache (dask calls this in a worker)."""
+    start = time.perf_counter()
+    try:
+        values = Cache(spec.cache_root).load(spec.key)
+    except (CorruptEntry, KeyError) as err:
+        return TaskResult(spec.name, spec.node, spec.out_frames, "corrupt", error={"cause": str(err)})
+    return TaskResult(spec.name, spec.node, spec.out_frames, "cached", values,
+                      seconds=time.perf_counter() - start)
+
+
+def task_meta(result: TaskResult) -> dict[str, Any]:
+    return result.meta()
+
+
+@dataclass
+class RunResult:
+    """Outcome of a run.
+
+    Attributes:
+        outputs: target node id -> output port -> value (chunks concatenated).
+        tasks: one record per scheduled task: name, node, frames, status, error, seconds.
+        plan: the plan that ran.
+    """
+
+    outputs: dict[str, dict[str, PortType]]
+    tasks: list[dict[str, Any]]
+    plan: Plan
+    seconds: float = 0.0
+    failures: list[dict[str, Any]] = field(default_factory=list)
+
+    def count(self, status: str, node: str | None = None) -> int:
+        return sum(1 for t in self.tasks if t["status"] == status and (node is None or t["node"] == node))
+
+    def executed(self, node: str | None = None) -> int:
+        """Tasks that ran (not read from the cache), for `node` or all."""
+        return self.count("executed", node)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failures and not any(t["status"] == "skipped" for t in self.tasks)
+
+    @property
+    def exit_code(self) -> int:
+        if self.ok:
+            return 0
+        if self.failures and all(f.get("bad_input") for f in self.failures):
+            return 2
+        return 1
+
+    def summary(self) -> str:
+        lines = [f"{len(self.tasks)} tasks: {self.executed()} executed, {self.count('cached')} cached, "
+                 f"{self.count('failed')} failed, {self.count('skipped')} skipped ({self.seconds:.2f} s)"]
+        for f in self.failures:
+            lines.append(f"FAILED {f['message']}")
+        return "\n".join(lines)
+
+
+class _Reporter:
+    """Per-node progress: tqdm bars on a terminal, JSON lines otherwise, or nothing."""
+
+    def __init__(self, plan: Plan, names: list[str], mode: str):
+        self.mode = mode
+        self.totals: dict[str, int] = {}
+        for name in names:
+            node = plan.tasks[name].node
+            self.totals[node] = self.totals.get(node, 0) + 1
+        self.done = {node: 0 for node in self.totals}
+        self.lock = threading.Lock()
+        self.bars = {}
+        if mode == "tty":
+            from tqdm import tqdm
+
+            for position, node in enumerate(self.totals):
+                self.bars[node] = tqdm(total=self.totals[node], desc=node, position=position, leave=True,
+                                       unit="chunk", file=sys.stderr, dynamic_ncols=True)
+        elif mode == "json":
+            self.emit({"event": "start", "tasks": len(names), "nodes": self.totals})
+
+    def emit(self, event: dict[str, Any]) -> None:
+        print(json.dumps(event), file=sys.stderr, flush=True)
+
+    def update(self, meta: Mapping[str, Any]) -> None:
+        with self.lock:
+            node = meta["node"]
+            self.done[node] += 1
+            if self.mode == "tty":
+                self.bars[node].update(1)
+                if meta["status"] == "cached":
+                    self.bars[node].set_postfix_str("cached", refresh=False)
+            elif self.mode == "json":
+                self.emit({"event": "task", "node": node, "frames": meta["frames"], "status": meta["status"],
+                           "done": self.done[node], "total": self.totals[node],
+                           "seconds": round(meta["seconds"], 4)})
+
+    def close(self, result: RunResult) -> None:
+        for bar in self.bars.values():
+            bar.close()
+        if self.mode == "json":
+            self.emit({"event": "end", "executed": result.executed(), "cached": result.count("cached"),
+                       "failed": result.count("failed"), "skipped": result.count("skipped"),
+                       "seconds": round(result.seconds, 3)})
+
+
+def _specs(plan: Plan, names: list[str], cache: Cache | None, progress: str) -> dict[str, TaskSpec]:
+    full = (plan.frames.start, plan.frames.stop)
+    specs = {}
+    for name in names:
+        task = plan.tasks[name]
+        deps = task.deps
+        inputs = tuple((port, tuple((deps.index(p.task), p.port, p.start, p.stop) for p in pieces))
+                       for port, pieces in task.inputs.items())
+        specs[name] = TaskSpec(name, task.node, type(plan.nodes[task.node]),
+                               dict(plan.graph.nodes[task.node].params), task.frames, task.out_frames, full,
+                               inputs, task.key, task.description,
+                               str(cache.root) if cache is not None else None, task.cacheable, progress)
+    return specs
+
+
+def _dask_graph(plan: Plan, names: list[str], specs: dict[str, TaskSpec]) -> dict[str, Any]:
+    dsk: dict[str, Any] = {}
+    for name in names:
+        task = plan.tasks[name]
+        if task.hit:
+            dsk[name] = (load_task, specs[name])
+        else:
+            dsk[name] = (compute_task, specs[name], *task.deps)
+        dsk[f"meta|{name}"] = (task_meta, name)
+    return dsk
+
+
+def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], scheduler: Any,
+             reporter: _Reporter, workers: int | None) -> tuple[list[dict], list[TaskResult]]:
+    keys = meta_keys + value_keys
+    if isinstance(scheduler, str) and scheduler in SCHEDULERS:
+        import dask.local
+        from dask.callbacks import Callback
+
+        class _Progress(Callback):
+            def _posttask(self, key, result, dsk, state, id):  # noqa: A002 (dask's signature)
+                if isinstance(result, TaskResult):
+                    reporter.update(result.meta())
+
+        if scheduler == "sync":
+            get = dask.local.get_sync
+            kwargs = {}
+        elif scheduler == "threads":
+            import dask.threaded
+
+            get, kwargs = dask.threaded.get, ({"num_workers": workers} if workers else {})
+        else:
+            import dask.multiprocessing
+
+            get, kwargs = dask.multiprocessing.get, ({"num_workers": workers} if workers else {})
+        with _Progress():
+            out = get(dsk, keys, **kwargs)
+        return list(out[: len(meta_keys)]), list(out[len(meta_keys):])
+    from distributed import Client, as_completed
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        futures = client.get(dsk, keys, sync=False)
+        metas_f, values_f = futures[: len(meta_keys)], futures[len(meta_keys):]
+        for future in as_completed(metas_f):
+            reporter.update(future.result())
+        metas = client.gather(metas_f)
+        values = client.gather(values_f)
+    finally:
+        if client is not scheduler:
+            client.close()
+    return metas, values
+
+
+def _resolve_cache(cache: Cache | str | os.PathLike | bool | None) -> Cache | None:
+    if cache is False:
+        return None
+    if cache is None or cache is True:
+        return Cache(cache_dir_from_env())
+    return cache if isinstance(cache, Cache) else Cache(cache)
+
+
+def _progress_mode(progress: str | bool | None) -> str:
+    if progress in (False, "none"):
+        return "none"
+    if progress in ("tty", "json"):
+        return str(progress)
+    if progress is None:
+        return "none"
+    return "tty" if sys.stderr.isatty() else "json"
+
+
+def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk: int = 64,
+        scheduler: Any = "threads", cache: Cache | str | os.PathLike | bool | None = None,
+        outputs: Iterable[str] | None = None, force: Iterable[str] = (),
+        progress: str | bool | None = None, workers: int | None = None,
+        parameters: Mapping[str, Any] | None = None) -> RunResult:
+    """Run a graph and return the outputs of its target nodes.
+
+    Args:
+        graph: a Graph or a path to a graph JSON file.
+        frames: frames to compute (default: what the sources produce).
+        chunk: frames per chunk for framewise and windowed nodes.
+        scheduler: "sync", "threads", "processes", a `dask.distributed` address
+            ("tcp://host:port") or a `distributed.Client`.
+        cache: cache folder or Cache; None: `NODEGRAPH_CACHE` or `.nodegraph/cache`;
+            False: no cache.
+        outputs: node ids whose outputs to return (default: the graph's sinks).
+        force: node ids to recompute even when cached (and their descendants).
+        progress: "tty", "json", "auto" (tty when stderr is a terminal) or None (quiet).
+        workers: number of workers for the local thread/process pools.
+        parameters: graph parameters by name (e.g. {"capture": "shot.npz"}).
+    Returns:
+        RunResult: `outputs[node][port]`, task records, failures, `exit_code`.
+    Raises:
+        GraphError: the graph or its parameters are invalid (nothing ran).
+        NodeError: a node rejected its parameters or input files while planning.
+    """
+    if not isinstance(graph, Graph):
+        graph = Graph.load(graph)
+    if parameters:
+        graph.apply(dict(parameters))
+    store = _resolve_cache(cache)
+    mode = _progress_mode(progress)
+    started = time.perf_counter()
+    for attempt in range(2):
+        plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
+                        force=force)
+        names = plan.needed()
+        specs = _specs(plan, names, store, mode)
+        dsk = _dask_graph(plan, names, specs)
+        value_names = [t for node in plan.targets for t in plan.by_node[node]]
+        reporter = _Reporter(plan, names, mode)
+        metas, results = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter, workers)
+        if any(m["status"] == "corrupt" for m in metas) and attempt == 0:
+            reporter.close(RunResult({}, metas, plan))
+            continue  # corrupt entries were removed: plan again, they are now misses
+        break
+    by_name = dict(zip(value_names, results))
+    out: dict[str, dict[str, PortType]] = {}
+    for node in plan.targets:
+        parts = [by_name[name] for name in plan.by_node[node]]
+        if any(p.status not in ("executed", "cached") for p in parts):
+            continue
+        out[node] = {}
+        for port, decl in plan.nodes[node].outputs.items():
+            values = [p.values[port] for p in parts]
+            out[node][port] = (type(values[0]).concat_frames(values) if decl.per_frame and len(values) > 1
+                               else values[0])
+    failures = [m["error"] for m in metas if m["status"] == "failed"]
+    result = RunResult(out, metas, plan, time.perf_counter() - started, failures)
+    _record(plan, metas, store)
+    reporter.close(result)
+    return result
+
+
+def _record(plan: Plan, metas: list[dict[str, Any]], store: Cache | None) -> None:
+    """Write error records of failed chunks and the key descriptions used (for --explain)."""
+    if store is None:
+        return
+    by_node: dict[str, dict[str, Any]] = {}
+    for meta in metas:
+        task = plan.tasks[meta["name"]]
+        frames = tuple(meta["frames"]) if task.mode != "static" else None
+        if meta["status"] == "failed":
+            meta["error"]["record"] = str(store.write_error(meta["error"]))
+        elif meta["status"] in ("executed", "cached"):
+            store.clear_error(task.node, frames if task.mode == "chunk" else None)
+            by_node.setdefault(task.node, store.read_last(task.node))[task.name] = task.description
+    for node, descriptions in by_node.items():
+        store.write_last(node, descriptions)
+
+
+def explain(graph: Graph, *, frames: range | None = None, chunk: int = 64,
+            cache: Cache | str | os.PathLike | bool | None = None, outputs: Iterable[str] | None = None,
+            force: Iterable[str] = ()) -> list[dict[str, Any]]:
+    """Per node and chunk: would it be a cache hit, and if not, why. Runs nothing.
+
+    Returns:
+        one dict per task: node, frames, hit (bool), reason.
+    """
+    store = _resolve_cache(cache)
+    plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
+                    force=force)
+    rows = []
+    last_by_node: dict[str, dict[str, Any]] = {}
+    for name in plan.needed():
+        task: TaskPlan = plan.tasks[name]
+        if task.hit:
+            reason = "cached"
+        elif store is None:
+            reason = "no cache"
+        else:
+            last = last_by_node.setdefault(task.node, store.read_last(task.node))
+            reason = explain_miss(task, last.get(name) or _same_node_other_chunk(last, task))
+        rows.append({"node": task.node, "task": name, "frames": list(task.out_frames), "hit": task.hit,
+                     "reason": reason})
+    return rows
+
+
+def _same_node_other_chunk(last: dict[str, Any], task: TaskPlan) -> dict[str, Any] | None:
+    """For a sequence or static task whose frame range changed, compare with its last run."""
+    if task.mode == "chunk" or not last:
+        return None
+    return next(iter(last.values()))
+

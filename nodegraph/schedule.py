@@ -1,0 +1,284 @@
+"""Plan a run: frame chunks, halos, cache keys and hits, computed from data alone (no dask, no I/O
+beyond hashing input files and checking the cache's manifests).
+
+Each node runs in one of three modes:
+- "chunk": framewise and windowed nodes, one task per chunk of frames. Chunks lie on a grid
+  of absolute frame numbers (multiples of the chunk size), so widening the frame range adds
+  chunks without changing the existing ones. A windowed node receives its chunk plus `halo`
+  frames on each side (cut at the ends of the run) and its per-frame outputs are trimmed back.
+- "sequence": one task over the whole range.
+- "static": nodes without per-frame inputs or outputs (e.g. loading a face model): one task
+  whose key does not depend on the frame range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Iterable
+
+from .cache import Cache, file_sha256, make_key
+from .errors import GraphError, GraphIssue, InputError, NodeError
+from .graph import Graph
+from .node import SEQUENCE, Node
+
+__all__ = ["Piece", "TaskPlan", "Plan", "plan_run", "chunk_bounds", "explain_miss", "parse_frames"]
+
+
+@dataclass(frozen=True)
+class Piece:
+    """A part of an input value: `task`'s output `port`, frames [start, stop) relative to that
+    task's value, or the whole value when start == -1."""
+
+    task: str
+    port: str
+    start: int = -1
+    stop: int = -1
+
+
+@dataclass
+class TaskPlan:
+    """One (node, chunk) task."""
+
+    name: str
+    node: str
+    node_type: str
+    mode: str
+    frames: tuple[int, int]
+    out_frames: tuple[int, int]
+    inputs: dict[str, list[Piece]]
+    key: str
+    description: dict[str, Any]
+    cacheable: bool
+    hit: bool = False
+    forced: bool = False
+
+    @property
+    def deps(self) -> list[str]:
+        seen: dict[str, None] = {}
+        for pieces in self.inputs.values():
+            for piece in pieces:
+                seen.setdefault(piece.task, None)
+        return list(seen)
+
+
+@dataclass
+class Plan:
+    """Every task of a run, in topological order, with the nodes' instances."""
+
+    graph: Graph
+    frames: range
+    chunk: int
+    tasks: dict[str, TaskPlan] = field(default_factory=dict)
+    by_node: dict[str, list[str]] = field(default_factory=dict)
+    nodes: dict[str, Node] = field(default_factory=dict)
+    targets: list[str] = field(default_factory=list)
+
+    def needed(self) -> list[str]:
+        """Tasks to schedule: the targets' tasks and, below each miss, what it consumes."""
+        need: dict[str, None] = {}
+        stack = [t for node in self.targets for t in self.by_node[node]]
+        while stack:
+            name = stack.pop()
+            if name in need:
+                continue
+            need[name] = None
+            task = self.tasks[name]
+            if not task.hit:
+                stack.extend(task.deps)
+        return [name for name in self.tasks if name in need]
+
+
+def parse_frames(text: str) -> range:
+    """Parse "a:b" (b exclusive) or "n" (= 0:n) into a range."""
+    try:
+        if ":" in text:
+            a, b = text.split(":", 1)
+            frames = range(int(a or 0), int(b))
+        else:
+            frames = range(0, int(text))
+    except ValueError:
+        raise ValueError(f"--frames: expected 'start:stop', found {text!r}") from None
+    if frames.start < 0 or frames.stop <= frames.start:
+        raise ValueError(f"--frames: expected 0 <= start < stop, found {text!r}")
+    return frames
+
+
+def chunk_bounds(frames: range, chunk: int) -> list[tuple[int, int]]:
+    """Split `frames` on the grid of multiples of `chunk` (absolute frame numbers)."""
+    if chunk <= 0:
+        raise ValueError(f"chunk size must be > 0, found {chunk}")
+    cuts = [frames.start]
+    cut = (frames.start // chunk + 1) * chunk
+    while cut < frames.stop:
+        cuts.append(cut)
+        cut += chunk
+    cuts.append(frames.stop)
+    return list(zip(cuts[:-1], cuts[1:]))
+
+
+def _mode(node: Node, connected: Iterable[str]) -> str:
+    per_frame_in = any(node.inputs[p].per_frame for p in connected)
+    per_frame_out = any(o.per_frame for o in node.outputs.values())
+    if not per_frame_in and not per_frame_out:
+        return "static"
+    return "sequence" if node.kind == SEQUENCE else "chunk"
+
+
+def _wrap(node: Node, err: Exception) -> NodeError:
+    if isinstance(err, NodeError):
+        return err
+    if isinstance(err, InputError):
+        return NodeError(node.node_id, node.type_name, err.message, port=err.port, bad_input=True)
+    return NodeError(node.node_id, node.type_name, f"{type(err).__name__}: {err}", bad_input=True)
+
+
+def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
+             cache: Cache | None = None, targets: list[str] | None = None,
+             force: Iterable[str] = ()) -> Plan:
+    """Turn a validated graph into tasks with cache keys.
+
+    Args:
+        graph: the graph (validated here).
+        frames: frames to compute; default: what the source nodes can produce.
+        chunk: frames per chunk for framewise and windowed nodes.
+        cache: where hits are looked up (None: no cache, everything runs).
+        targets: node ids whose outputs are wanted (default: the sinks).
+        force: node ids to recompute even when cached (with their descendants).
+    Raises:
+        GraphError: invalid graph, unknown target, or sources that disagree on the frame count.
+        NodeError: a node rejected its parameters or files while planning (bad_input).
+    """
+    graph.check()
+    order = graph.topological_order()
+    nodes = {nid: graph.instantiate(nid) for nid in order}
+    ups = {nid: graph.upstream(nid) for nid in order}
+    modes = {nid: _mode(nodes[nid], ups[nid]) for nid in order}
+    issues = []
+    for nid in order:
+        if modes[nid] == "chunk":
+            whole = [name for name, port in nodes[nid].outputs.items() if not port.per_frame]
+            if whole:
+                issues.append(GraphIssue(nid, whole[0], f"{nodes[nid].kind} node cannot have a whole-value "
+                                         "output; make the node 'sequence'"))
+    targets = list(targets) if targets else graph.sinks()
+    for target in targets:
+        if target not in graph.nodes:
+            issues.append(GraphIssue(target, "", "unknown target node"))
+    if issues:
+        raise GraphError(issues)
+
+    if frames is None:
+        counts = {}
+        for nid in order:
+            node = nodes[nid]
+            if modes[nid] != "static" and not any(node.inputs[p].per_frame for p in ups[nid]):
+                try:
+                    count = node.frame_count()
+                except Exception as err:  # a source that cannot read its files
+                    raise _wrap(node, err) from err
+                if count is not None:
+                    counts[nid] = int(count)
+        if not counts:
+            raise GraphError([GraphIssue("", "", "no source node knows how many frames to produce; "
+                                         "pass frames (--frames a:b)")])
+        if len(set(counts.values())) > 1:
+            found = ", ".join(f"'{k}' has {v}" for k, v in counts.items())
+            raise GraphError([GraphIssue("", "", f"source nodes disagree on the frame count ({found}); "
+                                         "pass frames (--frames a:b)")])
+        frames = range(0, next(iter(counts.values())))
+    if len(frames) == 0:
+        raise GraphError([GraphIssue("", "", "the frame range is empty")])
+
+    forced = set(force)
+    for nid in list(forced):
+        if nid not in graph.nodes:
+            raise GraphError([GraphIssue(nid, "", "unknown node for --force")])
+        forced |= graph.descendants(nid)
+
+    plan = Plan(graph, frames, chunk, nodes=nodes, targets=targets)
+    bounds = chunk_bounds(frames, chunk)
+    full = (frames.start, frames.stop)
+    for nid in order:
+        node, mode = nodes[nid], modes[nid]
+        cls = type(node)
+        try:
+            files = [file_sha256(path) for path in node.input_files()]
+        except Exception as err:
+            raise _wrap(node, err) from err
+        base = {"type": cls.type_name, "version": cls.version, "code": cls.code_hash(),
+                "params": node.key_params(), "files": files}
+        if mode == "static":
+            spans = [(None, None)]
+        elif mode == "sequence":
+            spans = [(full, full)]
+        else:
+            halo = node.kind.halo
+            spans = [((max(full[0], s - halo), min(full[1], e + halo)), (s, e)) for s, e in bounds]
+        names = []
+        for span, out in spans:
+            inputs: dict[str, list[Piece]] = {}
+            for port, src in ups[nid].items():
+                inputs[port] = _pieces(plan, src.node, src.port, span if node.inputs[port].per_frame else None)
+            description = dict(base)
+            description["inputs"] = {port: [[plan.tasks[p.task].key, p.port, p.start, p.stop] for p in pieces]
+                                     for port, pieces in sorted(inputs.items())}
+            description["frames"] = list(span) if span else None
+            description["out"] = list(out) if out else None
+            name = f"{nid}|all" if out is None else f"{nid}|{out[0]}:{out[1]}"
+            task = TaskPlan(name, nid, cls.type_name, mode, span or full, out or full, inputs,
+                            make_key(description), description, cls.cacheable)
+            task.forced = nid in forced
+            task.hit = bool(cache is not None and task.cacheable and not task.forced and cache.contains(task.key))
+            plan.tasks[name] = task
+            names.append(name)
+        plan.by_node[nid] = names
+    return plan
+
+
+def _pieces(plan: Plan, node_id: str, port: str, span: tuple[int, int] | None) -> list[Piece]:
+    """Pieces of `node_id.port` covering `span` (None: the whole value)."""
+    names = plan.by_node[node_id]
+    producer = plan.nodes[node_id]
+    if not producer.outputs[port].per_frame:
+        return [Piece(names[0], port)]
+    if span is None:
+        span = (plan.frames.start, plan.frames.stop)
+    pieces = []
+    for name in names:
+        task = plan.tasks[name]
+        s, e = task.out_frames
+        lo, hi = max(s, span[0]), min(e, span[1])
+        if lo < hi:
+            pieces.append(Piece(name, port, lo - s, hi - s))
+    return pieces
+
+
+def explain_miss(task: TaskPlan, last: dict[str, Any] | None) -> str:
+    """Why `task` is not a cache hit, comparing its key description with the last run's."""
+    if task.forced:
+        return "forced"
+    if not task.cacheable:
+        return "not cacheable (writes files): always runs"
+    if last is None:
+        return "new: never computed with these frames"
+    now = task.description
+    reasons = []
+    if last.get("type") != now["type"]:
+        reasons.append(f"node type changed ({last.get('type')} -> {now['type']})")
+    if last.get("version") != now["version"]:
+        reasons.append(f"node version changed ({last.get('version')} -> {now['version']})")
+    if last.get("code") != now["code"]:
+        reasons.append("code changed")
+    old_params, new_params = last.get("params", {}), now["params"]
+    for name in sorted(set(old_params) | set(new_params)):
+        if old_params.get(name) != new_params.get(name):
+            reasons.append(f"param {name} changed ({old_params.get(name)!r} -> {new_params.get(name)!r})")
+    if last.get("files") != now["files"]:
+        reasons.append("input files changed")
+    old_inputs, new_inputs = last.get("inputs", {}), now["inputs"]
+    for port in sorted(set(old_inputs) | set(new_inputs)):
+        if old_inputs.get(port) != new_inputs.get(port):
+            reasons.append(f"upstream '{port}' changed")
+    if last.get("frames") != now["frames"] and not reasons:
+        reasons.append(f"frames changed ({last.get('frames')} -> {now['frames']})")
+    return "; ".join(reasons) if reasons else "entry missing from the cache (evicted or corrupt)"
