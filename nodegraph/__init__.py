@@ -2,6 +2,8 @@
 
 from .errors import GraphError, GraphIssue, InputError, NodeError, NodegraphError
 from .node import FRAMEWISE, SEQUENCE, In, Kind, Node, NodeParams, Out, Param, run_node, windowed
+from .graph import Graph, PortRef
+from .runner import RunResult, explain, run
 from .types import (FaceModel, Files, FlowSequence, ImageSequence, JsonValue, Landmarks2D,
                     MeshSequence, ParamSequence, PortType, RigidSequence, Table, TorchModel)
 
@@ -10,6 +12,6 @@ __all__ = [
     "FRAMEWISE", "SEQUENCE", "In", "Kind", "Node", "NodeParams", "Out", "Param", "run_node",
     "windowed", "FaceModel", "Files", "FlowSequence", "ImageSequence", "JsonValue",
     "Landmarks2D", "MeshSequence", "ParamSequence", "PortType", "RigidSequence", "Table",
-    "TorchModel",
+    "TorchModel", "Graph", "PortRef", "RunResult", "explain", "run",
 ]
 __version__ = "0.1.0"

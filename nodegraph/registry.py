@@ -7,11 +7,16 @@ A third-party package adds nodes by declaring, in its own pyproject.toml::
 
     [project.entry-points."nodegraph.nodes"]
     mystudio = "mystudio.nodes"
+
+Modules listed in the environment variable `NODEGRAPH_PLUGINS` (comma-separated) are
+imported too: a quick way to try nodes that are not packaged yet.
 """
 
 from __future__ import annotations
 
 import difflib
+import os
+from importlib import import_module
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING
 
@@ -45,6 +50,8 @@ def load_plugins() -> None:
     _PLUGINS_LOADED = True
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         ep.load()
+    for module in filter(None, (m.strip() for m in os.environ.get("NODEGRAPH_PLUGINS", "").split(","))):
+        import_module(module)
 
 
 def get(name: str) -> type["Node"]:

@@ -15,7 +15,7 @@ from .errors import InputError
 from .node import FRAMEWISE, SEQUENCE, In, Node, NodeParams, Out, Param, windowed
 from .types import JsonValue, ParamSequence
 
-__all__ = ["Ramp", "Scale", "MovingAverage", "CumSum", "Fail", "Sum", "Total"]
+__all__ = ["Ramp", "Scale", "MovingAverage", "CumSum", "Fail", "Sum", "Total", "Offset"]
 
 
 def _column(values: np.ndarray) -> ParamSequence:
@@ -157,3 +157,27 @@ class Total(Node):
 
     def run(self, values: ParamSequence) -> dict:
         return {"total": JsonValue(float(values.values.astype(np.float64).sum()))}
+
+
+class Offset(Node):
+    """Add a constant (framewise). Version 2 renamed the parameter `amount` to `offset`."""
+
+    type_name = "test.Offset"
+    version = 2
+    kind = FRAMEWISE
+
+    class Params(NodeParams):
+        offset: float = Param(0.0, description="Added to every value.")
+
+    values = In(ParamSequence)
+    shifted = Out(ParamSequence)
+
+    @classmethod
+    def migrate(cls, from_version: int, params: dict) -> dict:
+        params = dict(params)
+        if from_version == 1 and "amount" in params:
+            params["offset"] = params.pop("amount")
+        return params
+
+    def run(self, values: ParamSequence) -> dict:
+        return {"shifted": ParamSequence(values.values + np.float32(self.params.offset), list(values.names))}
