@@ -72,9 +72,13 @@ class Plan:
     by_node: dict[str, list[str]] = field(default_factory=dict)
     nodes: dict[str, Node] = field(default_factory=dict)
     targets: list[str] = field(default_factory=list)
+    cache: Cache | None = None
 
     def needed(self) -> list[str]:
-        """Tasks to schedule: the targets' tasks and, below each miss, what it consumes."""
+        """Tasks to schedule: the targets' tasks and, below each miss, what it consumes.
+
+        The cache is consulted here, only for the tasks visited, and `TaskPlan.hit` set.
+        """
         need: dict[str, None] = {}
         stack = [t for node in self.targets for t in self.by_node[node]]
         while stack:
@@ -83,6 +87,8 @@ class Plan:
                 continue
             need[name] = None
             task = self.tasks[name]
+            task.hit = bool(self.cache is not None and task.cacheable and not task.forced
+                            and self.cache.contains(task.key))
             if not task.hit:
                 stack.extend(task.deps)
         return [name for name in self.tasks if name in need]
@@ -195,7 +201,7 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             raise GraphError([GraphIssue(nid, "", "unknown node for --force")])
         forced |= graph.descendants(nid)
 
-    plan = Plan(graph, frames, chunk, nodes=nodes, targets=targets)
+    plan = Plan(graph, frames, chunk, nodes=nodes, targets=targets, cache=cache)
     bounds = chunk_bounds(frames, chunk)
     full = (frames.start, frames.stop)
     for nid in order:
@@ -228,7 +234,6 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             task = TaskPlan(name, nid, cls.type_name, mode, span or full, out or full, inputs,
                             make_key(description), description, cls.cacheable)
             task.forced = nid in forced
-            task.hit = bool(cache is not None and task.cacheable and not task.forced and cache.contains(task.key))
             plan.tasks[name] = task
             names.append(name)
         plan.by_node[nid] = names
