@@ -1,0 +1,111 @@
+"""A report comparing stabilizations: error table against ground truth, head-motion curves,
+position histograms in world and skull frames."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
+from nodegraph import RigidSequence, Table
+from nodegraph.graph import write_text_atomic
+
+from .metrics import stabilization_errors
+from .plots import file_sha256, plot_head_motion, plot_position_histograms, stabilize_points
+
+__all__ = ["error_table", "StabilizationReport"]
+
+ESTIMATE_PORTS = ("estimate_1", "estimate_2", "estimate_3", "estimate_4")
+COLUMNS = ["method", "median_cm", "mean_cm", "p95_cm", "rot_median_deg", "rot_max_deg", "trans_median_cm"]
+
+
+def error_table(estimates: dict[str, np.ndarray], truth_rigid: np.ndarray, truth: np.ndarray) -> Table:
+    """One row of `stabilization_errors(...).summary()` per estimate.
+
+    Args:
+        estimates: label -> (F, 4, 4) estimated skull-to-world transforms.
+        truth_rigid: (F, 4, 4) true skull-to-world transforms.
+        truth: (F, V, 3) true noise-free skull-frame mesh, cm.
+    Returns:
+        Table with COLUMNS (errors in cm and degrees).
+    """
+    rows = []
+    for label, matrices in estimates.items():
+        summary = stabilization_errors(matrices, truth_rigid, truth).summary()
+        rows.append([label] + [round(summary[c], 6) for c in COLUMNS[1:]])
+    return Table(list(COLUMNS), rows)
+
+
+def _markdown(table: Table) -> str:
+    head = "| " + " | ".join(table.columns) + " |\n|" + "---|" * len(table.columns) + "\n"
+    body = "".join("| " + " | ".join(f"{c:.4f}" if isinstance(c, float) else str(c) for c in row) + " |\n"
+                   for row in table.rows)
+    return head + body
+
+
+class StabilizationReport(Node):
+    """Write a folder comparing up to four stabilizations of a capture (with ground truth when given).
+
+    Files: `head_motion.png` (truth and each estimate), `histograms.png` (vertex positions over
+    time in world vs each estimate's skull frame), and with ground truth `errors.md` /
+    `errors.json` (median / mean / p95 vertex error in cm after removing one global rigid
+    offset, rotation error in degrees, head-centre translation error in cm).
+    """
+
+    type_name = "report.StabilizationReport"
+    version = 1
+    kind = SEQUENCE
+    cacheable = False
+
+    class Params(NodeParams):
+        folder: str = Param("out/report", description="Output folder (created).")
+        labels: list[str] = Param(["estimate_1", "estimate_2", "estimate_3", "estimate_4"],
+                                  description="Names of estimate_1..estimate_4 in the table and plots.")
+        histogram_vertices: list[int] = Param([], description="Vertices shown in histograms.png; empty = 4 "
+                                              "evenly spaced vertices of the mesh.")
+
+    capture = In(MeshSequence, doc="Captured mesh sequence, world, cm.")
+    truth_rigid = In(RigidSequence, optional=True, doc="True skull-to-world transforms.")
+    truth = In(MeshSequence, optional=True, doc="True noise-free skull-frame mesh, cm.")
+    estimate_1 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
+    estimate_2 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
+    estimate_3 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
+    estimate_4 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
+    files = Out(Files, doc="The files written.")
+    table = Out(Table, doc="Error table (empty without ground truth).")
+
+    def run(self, capture: MeshSequence, truth_rigid: RigidSequence | None, truth: MeshSequence | None,
+            **estimates: RigidSequence | None) -> dict:
+        labels = list(self.params.labels) + list(ESTIMATE_PORTS)[len(self.params.labels):]
+        given = {labels[i]: estimates[port].matrices for i, port in enumerate(ESTIMATE_PORTS)
+                 if estimates.get(port) is not None}
+        if not given and truth_rigid is None:
+            raise InputError("estimate_1", "connect at least one estimate or truth_rigid, found none")
+        if (truth is None) != (truth_rigid is None):
+            raise InputError("truth" if truth is None else "truth_rigid",
+                             "ground truth needs both truth_rigid and truth, found only one")
+        if truth is not None and truth.vertices.shape != capture.vertices.shape:
+            raise InputError("truth", f"expected vertices {capture.vertices.shape} like capture, "
+                             f"found {truth.vertices.shape}")
+        ids = self.params.histogram_vertices or None
+        if ids is not None and max(ids) >= capture.num_vertices:
+            raise InputError("histogram_vertices", f"vertex {max(ids)} outside 0..{capture.num_vertices - 1}")
+        folder = Path(self.params.folder)
+        written = []
+        curves = ({"truth": truth_rigid.matrices} if truth_rigid is not None else {}) | given
+        written.append(plot_head_motion(curves, folder / "head_motion.png", fps=capture.fps))
+        self.progress(0.3, "head motion plotted")
+        skulls = {label: stabilize_points(m, capture.vertices) for label, m in curves.items()}
+        written.append(plot_position_histograms(capture.vertices, skulls, folder / "histograms.png", ids))
+        self.progress(0.7, "histograms plotted")
+        table = Table(list(COLUMNS), [])
+        if truth is not None and given:
+            table = error_table(given, truth_rigid.matrices, truth.vertices)
+            write_text_atomic(folder / "errors.md", _markdown(table))
+            write_text_atomic(folder / "errors.json", json.dumps(
+                {"columns": table.columns, "rows": table.rows}, indent=1) + "\n")
+            written += [folder / "errors.md", folder / "errors.json"]
+        paths = [str(p) for p in written]
+        return {"files": Files(paths, [file_sha256(p) for p in paths]), "table": table}
