@@ -41,7 +41,7 @@ from .types import PortType
 
 __all__ = [
     "Kind", "FRAMEWISE", "SEQUENCE", "windowed", "In", "Out", "Node", "NodeParams", "Param",
-    "run_node", "execute", "format_validation_error",
+    "run_node", "execute", "wrap_error", "format_validation_error",
 ]
 
 
@@ -284,6 +284,22 @@ def _check_value(node: Node, port: In, value: Any, expected_frames: int | None, 
                         port=port.name, frames=_where(node, chunk), bad_input=direction == "input")
 
 
+def wrap_error(node: Node, err: Exception, frames: tuple[int, int] | None = None,
+               bad_input: bool = False) -> NodeError:
+    """Turn any exception raised by a node's code into a NodeError naming the node.
+
+    `InputError` keeps its port and counts as bad input; other exceptions count as bad input
+    only when `bad_input` is set (e.g. while planning, before anything runs).
+    """
+    if isinstance(err, NodeError):
+        return err
+    if isinstance(err, InputError):
+        return NodeError(node.node_id, node.type_name, err.message, port=err.port, frames=frames,
+                         bad_input=True)
+    return NodeError(node.node_id, node.type_name, f"{type(err).__name__}: {err}", frames=frames,
+                     bad_input=bad_input)
+
+
 def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: range,
             progress: Callable[[float, str], None] | None = None) -> dict[str, PortType]:
     """Run `node` on values covering `frames`, checking inputs and outputs.
@@ -316,14 +332,8 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
     node.frames, node.full_frames, node._progress = frames, full_frames, progress
     try:
         result = node.run(**{name: inputs.get(name) for name in node.inputs})
-    except NodeError:
-        raise
-    except InputError as err:
-        raise NodeError(node.node_id, node.type_name, err.message, port=err.port,
-                        frames=_where(node, frames), bad_input=True) from err
     except Exception as err:
-        raise NodeError(node.node_id, node.type_name, f"{type(err).__name__}: {err}",
-                        frames=_where(node, frames)) from err
+        raise wrap_error(node, err, _where(node, frames)) from err
     finally:
         node._progress = None
     if not isinstance(result, Mapping):
@@ -339,7 +349,7 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
     return dict(result)
 
 
-def run_node(node_type: type[Node] | Node, params: NodeParams | Mapping[str, Any] | None = None,
+def run_node(node_type: type[Node] | Node, params: NodeParams | Mapping[str, Any] | None = None, /,
              *, frames: range | None = None, **inputs: Any) -> dict[str, PortType]:
     """Run one node in-process (no dask, no cache): the helper for unit tests and scripts.
 
@@ -364,7 +374,10 @@ def run_node(node_type: type[Node] | Node, params: NodeParams | Mapping[str, Any
                 count = value.num_frames
                 break
         if count is None:
-            count = node.frame_count() or 0
+            try:
+                count = node.frame_count() or 0
+            except Exception as err:
+                raise wrap_error(node, err, bad_input=True) from err
         frames = range(count)
     return execute(node, inputs, frames, frames)
 

@@ -91,6 +91,14 @@ def _trim(node: Node, values: dict[str, PortType], frames: tuple[int, int],
             for port, value in values.items()}
 
 
+def _combine(parts: list[PortType], per_frame: bool) -> PortType:
+    """One value from the chunks' values: frames concatenated, or whole values merged."""
+    if len(parts) == 1:
+        return parts[0]
+    kind = type(parts[0])
+    return kind.concat_frames(parts) if per_frame else kind.merge_chunks(parts)
+
+
 def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
     """Run one task on its upstream results (dask calls this in a worker)."""
     start = time.perf_counter()
@@ -107,7 +115,7 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
             for dep_index, out_port, lo, hi in pieces:
                 value = deps[dep_index].values[out_port]
                 parts.append(value if lo < 0 else value.slice_frames(lo, hi))
-            inputs[port] = parts[0] if len(parts) == 1 else type(parts[0]).concat_frames(parts)
+            inputs[port] = _combine(parts, pieces[0][2] >= 0)
         values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec))
         values = _trim(node, values, spec.frames, spec.out_frames)
     except Exception as err:
@@ -379,9 +387,7 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
             continue
         out[node] = {}
         for port, decl in plan.nodes[node].outputs.items():
-            values = [p.values[port] for p in parts]
-            out[node][port] = (type(values[0]).concat_frames(values) if decl.per_frame and len(values) > 1
-                               else values[0])
+            out[node][port] = _combine([p.values[port] for p in parts], decl.per_frame)
     failures = [m["error"] for m in metas if m["status"] == "failed"]
     result = RunResult(out, metas, plan, time.perf_counter() - started, failures)
     _record(plan, metas, store)

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 from typing import Any, Iterable
 
 from .cache import Cache, file_sha256, make_key
-from .errors import GraphError, GraphIssue, InputError, NodeError
+from .errors import GraphError, GraphIssue
 from .graph import Graph
-from .node import SEQUENCE, Node
+from .node import SEQUENCE, Node, wrap_error
 
 __all__ = ["Piece", "TaskPlan", "Plan", "plan_run", "chunk_bounds", "explain_miss", "parse_frames"]
 
@@ -130,14 +130,6 @@ def _mode(node: Node, connected: Iterable[str]) -> str:
     return "sequence" if node.kind == SEQUENCE else "chunk"
 
 
-def _wrap(node: Node, err: Exception) -> NodeError:
-    if isinstance(err, NodeError):
-        return err
-    if isinstance(err, InputError):
-        return NodeError(node.node_id, node.type_name, err.message, port=err.port, bad_input=True)
-    return NodeError(node.node_id, node.type_name, f"{type(err).__name__}: {err}", bad_input=True)
-
-
 def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
              cache: Cache | None = None, targets: list[str] | None = None,
              force: Iterable[str] = ()) -> Plan:
@@ -162,7 +154,8 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
     issues = []
     for nid in order:
         if modes[nid] == "chunk":
-            whole = [name for name, port in nodes[nid].outputs.items() if not port.per_frame]
+            whole = [name for name, port in nodes[nid].outputs.items()
+                     if not port.per_frame and not port.type.mergeable()]
             if whole:
                 issues.append(GraphIssue(nid, whole[0], f"{nodes[nid].kind} node cannot have a whole-value "
                                          "output; make the node 'sequence'"))
@@ -181,7 +174,7 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
                 try:
                     count = node.frame_count()
                 except Exception as err:  # a source that cannot read its files
-                    raise _wrap(node, err) from err
+                    raise wrap_error(node, err, bad_input=True) from err
                 if count is not None:
                     counts[nid] = int(count)
         if not counts:
@@ -210,7 +203,7 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         try:
             files = [file_sha256(path) for path in node.input_files()]
         except Exception as err:
-            raise _wrap(node, err) from err
+            raise wrap_error(node, err, bad_input=True) from err
         base = {"type": cls.type_name, "version": cls.version, "code": cls.code_hash(),
                 "params": node.key_params(), "files": files}
         if mode == "static":
@@ -245,7 +238,7 @@ def _pieces(plan: Plan, node_id: str, port: str, span: tuple[int, int] | None) -
     names = plan.by_node[node_id]
     producer = plan.nodes[node_id]
     if not producer.outputs[port].per_frame:
-        return [Piece(names[0], port)]
+        return [Piece(name, port) for name in names]  # several only for mergeable types (Files)
     if span is None:
         span = (plan.frames.start, plan.frames.stop)
     pieces = []

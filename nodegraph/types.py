@@ -149,6 +149,17 @@ class PortType:
             changes[name] = np.concatenate(values, axis=0)
         return dataclasses.replace(first, **changes)
 
+    @classmethod
+    def merge_chunks(cls: type[T], parts: Sequence[T]) -> T:
+        """Combine the whole values that chunks of a framewise node produced (e.g. the files
+        each chunk wrote). Types that cannot be combined raise TypeError."""
+        raise TypeError(f"{cls.type_name} values of different chunks cannot be combined")
+
+    @classmethod
+    def mergeable(cls) -> bool:
+        """True when `merge_chunks` is defined for this type."""
+        return cls.merge_chunks.__func__ is not PortType.merge_chunks.__func__
+
     # -- storage ------------------------------------------------------------------------
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Flatten into named arrays (no object arrays): the cache's on-disk form."""
@@ -522,3 +533,7 @@ class Files(PortType):
 
     paths: list[str]
     sha256: list[str]
+
+    @classmethod
+    def merge_chunks(cls, parts: Sequence["Files"]) -> "Files":
+        return cls([p for part in parts for p in part.paths], [h for part in parts for h in part.sha256])

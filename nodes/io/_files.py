@@ -1,0 +1,271 @@
+"""Shared file helpers of the io nodes: frame patterns, atomic writes, hashes, NPZ row reads.
+
+Frame patterns name one file per frame with a single frame token:
+
+- printf style `face.%04d.obj` (`%d` for no padding),
+- hash style `face.####.obj` (padding = number of `#`),
+- format style `face.{frame:04d}.obj` (or `{frame}`).
+
+A loader maps run frame `f` (0-based) to file number `first_frame + f`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import struct
+import tempfile
+import zipfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Mapping, NamedTuple, Sequence
+
+import numpy as np
+
+from nodegraph import Files, InputError
+
+__all__ = [
+    "FrameToken", "frame_token", "is_frame_pattern", "expand_frame_pattern", "find_frame_numbers",
+    "pattern_files", "atomic_path", "sha256_file", "files_value", "format_of", "npz_keys",
+    "npz_shape", "read_npz_rows", "read_npz_array",
+]
+
+_TOKEN = re.compile(r"%(0?)(\d*)d|(#+)|\{frame(?::0?(\d+)d)?\}")
+
+
+class FrameToken(NamedTuple):
+    """The frame token of a pattern.
+
+    Attributes:
+        head: text before the token.
+        tail: text after the token.
+        width: zero-padding width (0 = no padding).
+    """
+
+    head: str
+    tail: str
+    width: int
+
+
+def frame_token(pattern: str) -> FrameToken | None:
+    """Find the frame token of `pattern`; None when it has none.
+
+    Args:
+        pattern: a path such as `shot/face.%04d.obj`, `face.####.ply`, `img.{frame:04d}.exr`.
+    Returns:
+        FrameToken, or None for a plain path.
+    Raises:
+        InputError: (a ValueError, naming param "path") when there is more than one token.
+
+    Example:
+        >>> frame_token("a/face.####.obj")
+        FrameToken(head='a/face.', tail='.obj', width=4)
+    """
+    matches = list(_TOKEN.finditer(pattern))
+    if not matches:
+        return None
+    if len(matches) > 1:
+        raise InputError("path", f"'{pattern}': expected one frame token (%04d, #### or "
+                                 f"{{frame:04d}}), found {len(matches)}")
+    match = matches[0]
+    if match.group(3):
+        width = len(match.group(3))
+    elif match.group(0).startswith("%"):
+        width = int(match.group(2)) if match.group(2) else 0
+    else:
+        width = int(match.group(4)) if match.group(4) else 0
+    return FrameToken(pattern[:match.start()], pattern[match.end():], width)
+
+
+def is_frame_pattern(path: str) -> bool:
+    """Return True when `path` holds a frame token (see `frame_token`)."""
+    return frame_token(path) is not None
+
+
+def expand_frame_pattern(pattern: str, number: int) -> str:
+    """Return the path of file `number` of `pattern`.
+
+    Example:
+        >>> expand_frame_pattern("face.%04d.obj", 12)
+        'face.0012.obj'
+    """
+    token = frame_token(pattern)
+    if token is None:
+        raise ValueError(f"pattern '{pattern}': expected a frame token (%04d, #### or "
+                         "{frame:04d}), found none")
+    sign = "-" if number < 0 else ""
+    return f"{token.head}{sign}{abs(int(number)):0{token.width}d}{token.tail}"
+
+
+def find_frame_numbers(pattern: str) -> list[int]:
+    """Return the sorted numbers of the existing files of `pattern` (one directory listing)."""
+    token = frame_token(pattern)
+    if token is None:
+        raise ValueError(f"pattern '{pattern}': expected a frame token, found none")
+    folder, head = os.path.split(token.head)
+    if os.sep in token.tail or (os.altsep and os.altsep in token.tail):
+        raise ValueError(f"pattern '{pattern}': the frame token must be in the file name")
+    try:
+        names = os.listdir(folder or ".")
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    regex = re.compile(re.escape(head) + r"(-?\d+)" + re.escape(token.tail) + r"\Z")
+    numbers = set()
+    for name in names:
+        match = regex.match(name)
+        if match:
+            number = int(match.group(1))
+            # Keep only names the pattern itself writes ("0005" for %04d, not "00005").
+            if os.path.basename(expand_frame_pattern(pattern, number)) == name:
+                numbers.add(number)
+    return sorted(numbers)
+
+
+def pattern_files(pattern: str) -> list[Path]:
+    """Return the existing files of `pattern`, or `[pattern]` for an existing plain path."""
+    if frame_token(pattern) is None:
+        return [Path(pattern)] if Path(pattern).is_file() else []
+    return [Path(expand_frame_pattern(pattern, n)) for n in find_frame_numbers(pattern)]
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to `path`; on success move it onto `path` (os.replace).
+
+    The temporary name keeps the extension of `path` (writers pick formats by extension)
+    and lives in the same folder (so the replace is atomic). Parent folders are created.
+    On an exception the temporary file is removed and `path` is left untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def sha256_file(path: str | os.PathLike, block: int = 1 << 20) -> str:
+    """Return the sha256 (hex) of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(block), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def files_value(paths: Sequence[str | os.PathLike]) -> Files:
+    """Return the `Files` output of written `paths` (kept as given) with their sha256."""
+    return Files(paths=[str(p) for p in paths], sha256=[sha256_file(p) for p in paths])
+
+
+def format_of(path: str, formats: Mapping[str, str], param: str = "path") -> str:
+    """Return the format of `path` from its extension (case-insensitive).
+
+    Args:
+        path: file path or pattern.
+        formats: extension with dot (".obj") -> format name.
+        param: parameter named in the error.
+    Raises:
+        InputError: for an extension not in `formats`.
+    """
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in formats:
+        raise InputError(param, f"'{path}': expected an extension among "
+                                f"{sorted(formats)}, found '{ext or '(none)'}'")
+    return formats[ext]
+
+
+# -- NPZ members, read without loading whole arrays ----------------------------------------
+
+def npz_keys(path: str | os.PathLike) -> list[str]:
+    """Return the array names of an .npz file."""
+    with zipfile.ZipFile(path) as zf:
+        return [n[:-4] for n in zf.namelist() if n.endswith(".npy")]
+
+
+def _read_header(fh) -> tuple[tuple[int, ...], bool, np.dtype]:
+    version = np.lib.format.read_magic(fh)
+    if version == (1, 0):
+        return np.lib.format.read_array_header_1_0(fh)
+    if version == (2, 0):
+        return np.lib.format.read_array_header_2_0(fh)
+    raise ValueError(f"unsupported .npy version {version}")
+
+
+def npz_shape(path: str | os.PathLike, key: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Return (shape, dtype) of member `key` of an .npz file from its header only.
+
+    Raises:
+        KeyError: when `key` is not in the file.
+    """
+    with zipfile.ZipFile(path) as zf, zf.open(f"{key}.npy") as fh:
+        shape, _, dtype = _read_header(fh)
+    return shape, dtype
+
+
+def read_npz_array(path: str | os.PathLike, key: str) -> np.ndarray:
+    """Load member `key` of an .npz file whole (no pickles)."""
+    with np.load(path, allow_pickle=False) as data:
+        return np.asarray(data[key])
+
+
+def read_npz_rows(path: str | os.PathLike, key: str, start: int, stop: int) -> np.ndarray:
+    """Return rows [start, stop) of member `key` of an .npz file, reading only those rows.
+
+    Stored (uncompressed, `np.savez`) members are memory-mapped; compressed ones
+    (`np.savez_compressed`) are streamed, decompressing but not keeping earlier rows.
+
+    Args:
+        path: the .npz file.
+        key: member name (without ".npy").
+        start, stop: row range along axis 0, 0 <= start <= stop <= rows.
+    Returns:
+        (stop - start, ...) array, a copy.
+    Raises:
+        KeyError: unknown member. ValueError: bad range or a truncated member.
+    """
+    path = os.fspath(path)
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(f"{key}.npy")
+        with zf.open(info) as fh:
+            shape, fortran, dtype = _read_header(fh)
+            header_len = fh.tell()
+            if not shape or not 0 <= start <= stop <= shape[0]:
+                raise ValueError(f"'{key}': rows {start}:{stop} outside 0:{shape[0] if shape else 0}")
+            if fortran or dtype.hasobject:
+                return np.asarray(read_npz_array(path, key)[start:stop])
+            row_items = int(np.prod(shape[1:], dtype=np.int64))
+            row_bytes = row_items * dtype.itemsize
+            count = stop - start
+            if info.compress_type == zipfile.ZIP_STORED:
+                with open(path, "rb") as raw:
+                    raw.seek(info.header_offset)
+                    local = raw.read(30)
+                name_len, extra_len = struct.unpack("<HH", local[26:30])
+                offset = info.header_offset + 30 + name_len + extra_len + header_len
+                if offset + shape[0] * row_bytes > os.path.getsize(path):
+                    raise ValueError(f"'{key}': file is truncated")
+                mapped = np.memmap(path, dtype=dtype, mode="r", offset=offset + start * row_bytes,
+                                   shape=(count, *shape[1:])) if count else None
+                out = np.array(mapped) if count else np.empty((0, *shape[1:]), dtype)
+                del mapped
+                return out
+            skip = start * row_bytes
+            while skip > 0:
+                got = len(fh.read(min(skip, 1 << 24)))
+                if got == 0:
+                    raise ValueError(f"'{key}': file is truncated")
+                skip -= got
+            data = fh.read(count * row_bytes)
+            if len(data) != count * row_bytes:
+                raise ValueError(f"'{key}': file is truncated")
+            return np.frombuffer(data, dtype=dtype).reshape(count, *shape[1:]).copy()

@@ -1,0 +1,732 @@
+"""Mesh sequences on disk: numbered OBJ/PLY files, NPZ, and USD (UsdGeom.Mesh).
+
+Formats, by extension:
+
+- numbered `face.%04d.obj` / `face.####.ply` / `face.{frame:04d}.obj`: one file per frame;
+  run frame `f` is file number `first_frame + f`. PLY goes through trimesh (vertex order kept,
+  per-vertex uv as `s`, `t`). OBJ has its own small reader and writer, because trimesh's OBJ
+  loader either reorders and splits vertices at uv seams or collapses face-varying uv, and a
+  MeshSequence needs the file's vertex order and its uv seams. Polygons are fan-triangulated.
+- `.npz`: `vertices (F, V, 3)`, `faces`, optional `uv`, `uv_faces`, `groups/<name>`, `fps`.
+  A chunk reads only its rows (memory-mapped when stored uncompressed, as the saver does).
+- `.usd` / `.usda` / `.usdc`: a UsdGeom.Mesh with time-sampled `points` (frame `f` is the
+  f-th time sample; the saver writes time code = run frame), `faceVertexCounts` /
+  `faceVertexIndices`, uv as primvar `st` (faceVarying and indexed when the mesh has
+  `uv_faces`, vertex otherwise), vertex groups as GeomSubsets of element type `point` (family
+  `vertexGroups`), `timeCodesPerSecond` = fps, `metersPerUnit` = 0.01. Points are read in
+  world space (the prim's local-to-world transform is applied) and scaled to cm.
+
+Every load error names the file and the run frame.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import zipfile
+import zlib
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams,
+                       Out, Param)
+
+from ._files import (atomic_path, expand_frame_pattern, files_value, find_frame_numbers, format_of,
+                     frame_token, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
+
+__all__ = [
+    "MeshFrame", "fan_triangulate", "read_obj", "write_obj", "read_ply", "write_ply",
+    "mesh_frame_count", "load_mesh_sequence", "save_mesh_sequence", "LoadMeshSequence",
+    "SaveMeshSequence", "SaveMeshFrames",
+]
+
+MESH_FORMATS = {".obj": "obj", ".ply": "ply", ".npz": "npz", ".usd": "usd", ".usda": "usd",
+                ".usdc": "usd"}
+_PER_FRAME_FORMATS = ("obj", "ply")
+_GROUP_FAMILY = "vertexGroups"
+_GROUP_NAME_KEY = "nodegraph:groupName"
+
+
+class MeshFrame(NamedTuple):
+    """One mesh as read from a file.
+
+    Attributes:
+        vertices: (V, 3) float32, cm.
+        faces: (T, 3) int32 vertex indices.
+        uv: (U, 2) float32 or None.
+        uv_faces: (T, 3) int32 indices into `uv`, or None (then uv is per vertex).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    uv_faces: np.ndarray | None = None
+
+
+# -- polygons ------------------------------------------------------------------------------
+
+def fan_triangulate(counts: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons given their corner counts.
+
+    Args:
+        counts: (N,) int, corners of each polygon (>= 3), corners stored one polygon after
+            the other.
+    Returns:
+        (T, 3) int64 indices of corners (into the flat corner list), T = sum(counts - 2);
+        polygon (c0, c1, ..., cn) gives (c0, c1, c2), (c0, c2, c3), ...
+    Raises:
+        ValueError: when a polygon has fewer than 3 corners.
+
+    Example:
+        >>> fan_triangulate(np.array([3, 4])).tolist()
+        [[0, 1, 2], [3, 4, 5], [3, 5, 6]]
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    if counts.size and counts.min() < 3:
+        bad = int(np.argmax(counts < 3))
+        raise ValueError(f"counts: expected >= 3 corners per polygon, found {int(counts[bad])} "
+                         f"at polygon {bad}")
+    starts = np.cumsum(counts) - counts
+    tris = counts - 2
+    owner = np.repeat(np.arange(counts.size), tris)
+    k = np.arange(int(tris.sum())) - np.repeat(np.cumsum(tris) - tris, tris)
+    base = starts[owner]
+    return np.stack([base, base + k + 1, base + k + 2], axis=1)
+
+
+# -- OBJ -----------------------------------------------------------------------------------
+
+_OBJ_V = re.compile(r"^v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.M)
+_OBJ_VT = re.compile(r"^vt[ \t]+(\S+)[ \t]+(\S+)", re.M)
+
+
+def _parse_numbers(tokens: list, dtype: type) -> np.ndarray:
+    """Parse number tokens (strings, or tuples of strings) in one C pass."""
+    if tokens and isinstance(tokens[0], tuple):
+        tokens = [t for row in tokens for t in row]
+    text = " ".join(tokens)
+    values = np.array(text.split(), dtype=dtype) if dtype is np.int64 else \
+        np.fromstring(text, dtype=dtype, sep=" ")
+    if values.size != len(tokens):
+        raise ValueError(f"expected {len(tokens)} numbers, found {values.size} parseable ones")
+    return values
+
+
+def _record_numbers(rows: list[str], width: int, regex: re.Pattern, text: str) -> np.ndarray:
+    """(N, width) float64 from OBJ record bodies; rows with extra values (w, colours) keep
+    their first `width` values (slower regex path)."""
+    values = np.fromstring(" ".join(rows), dtype=np.float64, sep=" ") if rows else np.zeros(0)
+    if values.size == width * len(rows):
+        return values.reshape(-1, width)
+    return _parse_numbers(regex.findall(text), np.float64).reshape(-1, width)
+
+
+def _obj_indices(values: np.ndarray, count: int) -> np.ndarray:
+    """OBJ 1-based (or negative, relative to the end) indices -> 0-based."""
+    return np.where(values < 0, values + count, values - 1)
+
+
+def read_obj(path: str | os.PathLike) -> MeshFrame:
+    """Read an OBJ file: `v`, `vt` and `f` records (all groups/objects as one mesh).
+
+    Vertex order is the file's. When every face corner uses the same index for `v` and `vt`
+    and there are as many `vt` as `v`, uv is per vertex; otherwise it is face-varying
+    (`uv_faces`). Normals, materials and groups are ignored. Negative indices are taken
+    relative to the end of the file's vertex list.
+
+    Args:
+        path: the .obj file.
+    Returns:
+        MeshFrame (vertices in the file's units, taken as cm).
+    Raises:
+        ValueError: malformed records or indices out of range.
+    """
+    text = Path(path).read_text(encoding="utf-8", errors="strict").replace("\t", " ")
+    records: dict[str, list[str]] = {"v": [], "vt": [], "f": []}
+    for line in text.splitlines():
+        key, _, rest = line.partition(" ")
+        if key in records:
+            records[key].append(rest)
+    vertices = _record_numbers(records["v"], 3, _OBJ_V, text).astype(np.float32)
+    uv = _record_numbers(records["vt"], 2, _OBJ_VT, text).astype(np.float32)
+    lines = [line.strip() for line in records["f"]]
+    nv = len(vertices)
+    if not lines:
+        return MeshFrame(vertices, np.zeros((0, 3), np.int32), uv if len(uv) == nv and nv else None)
+    counts = np.fromiter(map(len, map(str.split, lines)), dtype=np.int64, count=len(lines))
+    corners = " ".join(lines).split()
+    fields = corners[0].count("/") + 1
+    flat = " ".join(corners).replace("//", "/0/").replace("/", " ").split()
+    if len(flat) != fields * len(corners):
+        raise ValueError(f"'{path}': face corners mix formats (expected every corner like "
+                         f"'{corners[0]}')")
+    ints = _parse_numbers(flat, np.int64).reshape(len(corners), fields)
+    tri = fan_triangulate(counts)
+    v_idx = _obj_indices(ints[:, 0], nv)
+    if v_idx.size and (v_idx.min() < 0 or v_idx.max() >= nv):
+        raise ValueError(f"'{path}': face indices outside the {nv} vertices")
+    faces = v_idx[tri].astype(np.int32)
+    if fields < 2 or not len(uv) or (ints[:, 1] == 0).any():
+        return MeshFrame(vertices, faces, None, None)
+    t_idx = _obj_indices(ints[:, 1], len(uv))
+    if t_idx.min() < 0 or t_idx.max() >= len(uv):
+        raise ValueError(f"'{path}': texture indices outside the {len(uv)} uv records")
+    if len(uv) == nv and np.array_equal(t_idx, v_idx):
+        return MeshFrame(vertices, faces, uv, None)
+    return MeshFrame(vertices, faces, uv, t_idx[tri].astype(np.int32))
+
+
+def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
+              uv: np.ndarray | None = None, uv_faces: np.ndarray | None = None) -> None:
+    """Write an OBJ file (`v`, optional `vt`, `f`); float32 values round-trip exactly.
+
+    Args:
+        path: destination (written as is; use `atomic_path` for atomic writes).
+        vertices: (V, 3) float, cm.
+        faces: (T, 3) int.
+        uv: (U, 2) or None; per vertex when `uv_faces` is None.
+        uv_faces: (T, 3) int indices into `uv`, or None.
+    """
+    def rows(fmt: str, values: np.ndarray) -> str:  # one C-level format call per record kind
+        return (fmt * len(values)) % tuple(values.ravel().tolist())
+
+    faces = np.asarray(faces, np.int64)
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("# written by nodegraph io\n")
+        # float32 -> float64 is exact and %.9g round-trips any float32
+        fh.write(rows("v %.9g %.9g %.9g\n", np.asarray(vertices, np.float32).astype(np.float64)))
+        if uv is not None:
+            fh.write(rows("vt %.9g %.9g\n", np.asarray(uv, np.float32).astype(np.float64)))
+            tex = faces if uv_faces is None else np.asarray(uv_faces, np.int64)
+            fh.write(rows("f %d/%d %d/%d %d/%d\n", np.stack([faces, tex], axis=-1) + 1))
+        else:
+            fh.write(rows("f %d %d %d\n", faces + 1))
+
+
+# -- PLY (trimesh) -------------------------------------------------------------------------
+
+def read_ply(path: str | os.PathLike) -> MeshFrame:
+    """Read a PLY file through trimesh, keeping vertex order; per-vertex uv when present."""
+    import trimesh
+
+    loaded = trimesh.load(os.fspath(path), file_type="ply", process=False, maintain_order=True)
+    if isinstance(loaded, trimesh.Scene):
+        geometry = list(loaded.geometry.values())
+        if len(geometry) != 1:
+            raise ValueError(f"'{path}': expected one mesh, found {len(geometry)}")
+        loaded = geometry[0]
+    vertices = np.asarray(loaded.vertices, dtype=np.float32)
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int32).reshape(-1, 3)
+    uv = getattr(getattr(loaded, "visual", None), "uv", None)
+    uv = None if uv is None or len(uv) != len(vertices) else np.asarray(uv, np.float32)
+    return MeshFrame(vertices, faces, uv, None)
+
+
+def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
+              uv: np.ndarray | None = None) -> None:
+    """Write a binary PLY through trimesh (float32 positions, per-vertex uv as `s`, `t`)."""
+    import trimesh
+
+    visual = trimesh.visual.TextureVisuals(uv=np.asarray(uv, np.float64)) if uv is not None else None
+    mesh = trimesh.Trimesh(vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces),
+                           visual=visual, process=False, validate=False)
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", vertex_normal=False)
+    with open(path, "wb") as fh:
+        fh.write(data)
+
+
+# -- helpers --------------------------------------------------------------------------------
+
+def _where(frame: int, file: str | os.PathLike) -> str:
+    return f"frame {frame} (file '{os.fspath(file)}')"
+
+
+def _check_frame(frame: int, file: str, vertices: np.ndarray, faces: np.ndarray,
+                 ref: MeshFrame | None, ref_file: str) -> None:
+    """Raise InputError when a frame's vertices are not finite or its topology differs."""
+    if ref is not None:
+        if vertices.shape[0] != ref.vertices.shape[0]:
+            raise InputError("path", f"{_where(frame, file)}: expected {ref.vertices.shape[0]} "
+                                     f"vertices as in frame 0 ('{ref_file}'), found {vertices.shape[0]}")
+        if faces is not None and not np.array_equal(faces, ref.faces):
+            detail = (f"{len(faces)} faces vs {len(ref.faces)}" if faces.shape != ref.faces.shape else
+                      f"first different face {int(np.argmax((faces != ref.faces).any(axis=1)))}")
+            raise InputError("path", f"{_where(frame, file)}: expected the faces of frame 0 "
+                                     f"('{ref_file}'), found different topology ({detail})")
+    bad = ~np.isfinite(vertices)
+    if bad.any():
+        vertex = int(np.argwhere(bad)[0][0])
+        raise InputError("path", f"{_where(frame, file)}: expected finite vertices, found "
+                                 f"NaN/inf at vertex {vertex}")
+
+
+def _resolve_first(path: str, first_frame: int | None) -> tuple[int | None, list[int]]:
+    numbers = find_frame_numbers(path)
+    if first_frame is not None:
+        return first_frame, numbers
+    return (numbers[0] if numbers else None), numbers
+
+
+def _no_files(path: str) -> InputError:
+    token = frame_token(path)
+    folder = os.path.dirname(token.head) if token else os.path.dirname(path)
+    return InputError("path", f"expected files matching '{path}', found none in "
+                              f"'{folder or '.'}'")
+
+
+def _check_range(frames: range, count: int, path: str) -> None:
+    if len(frames) and (frames.start < 0 or frames[-1] >= count):
+        bad = frames.start if frames.start < 0 else frames[-1]
+        raise InputError("path", f"frame {bad} (file '{path}'): expected a frame in 0..{count - 1}, "
+                                 f"the file has {count} frame(s)")
+
+
+# -- numbered files ------------------------------------------------------------------------
+
+def _read_mesh_file(path: str, fmt: str, frame: int) -> MeshFrame:
+    if not os.path.isfile(path):
+        raise InputError("path", f"{_where(frame, path)}: expected the file of this frame, "
+                                 "found it missing")
+    try:
+        return read_obj(path) if fmt == "obj" else read_ply(path)
+    except (ValueError, OSError, UnicodeDecodeError, IndexError, KeyError, TypeError) as err:
+        raise InputError("path", f"{_where(frame, path)}: expected a readable {fmt.upper()} mesh, "
+                                 f"found an unreadable or truncated file ({err})") from err
+
+
+def _load_numbered(path: str, fmt: str, frames: range, first_frame: int | None,
+                   fps: float) -> MeshSequence:
+    first, _ = _resolve_first(path, first_frame)
+    if first is None:
+        raise _no_files(path)
+    ref_file = expand_frame_pattern(path, first)
+    ref = _read_mesh_file(ref_file, fmt, 0)
+    _check_frame(0, ref_file, ref.vertices, None, None, ref_file)
+    out = np.empty((len(frames), ref.vertices.shape[0], 3), np.float32)
+    for i, f in enumerate(frames):
+        file = expand_frame_pattern(path, first + f)
+        data = ref if f == 0 else _read_mesh_file(file, fmt, f)
+        _check_frame(f, file, data.vertices, data.faces, ref, ref_file)
+        out[i] = data.vertices
+    return MeshSequence(vertices=out, faces=ref.faces, uv=ref.uv, uv_faces=ref.uv_faces, fps=fps)
+
+
+# -- NPZ ------------------------------------------------------------------------------------
+
+def _load_npz(path: str, frames: range, fps: float) -> MeshSequence:
+    try:
+        keys = npz_keys(path)
+        if "vertices" not in keys:
+            raise InputError("path", f"file '{path}': expected an array 'vertices' (F, V, 3), "
+                                     f"found keys {sorted(keys)}")
+        shape, _ = npz_shape(path, "vertices")
+        if len(shape) != 3 or shape[2] != 3:
+            raise InputError("path", f"file '{path}': expected 'vertices' of shape (F, V, 3), "
+                                     f"found {shape}")
+        _check_range(frames, shape[0], path)
+        vertices = read_npz_rows(path, "vertices", frames.start, frames.stop) if len(frames) else \
+            np.zeros((0, shape[1], 3), np.float32)
+        faces = read_npz_array(path, "faces") if "faces" in keys else np.zeros((0, 3), np.int32)
+        uv = read_npz_array(path, "uv").astype(np.float32) if "uv" in keys else None
+        uv_faces = read_npz_array(path, "uv_faces") if "uv_faces" in keys else None
+        groups = {k[len("groups/"):]: read_npz_array(path, k) for k in keys if k.startswith("groups/")}
+        if "fps" in keys:
+            fps = float(read_npz_array(path, "fps"))
+    except InputError:
+        raise
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        raise InputError("path", f"file '{path}': expected a readable .npz mesh sequence, found "
+                                 f"an unreadable or truncated file ({type(err).__name__}: {err})") from err
+    vertices = vertices.astype(np.float32, copy=False)
+    bad = ~np.isfinite(vertices)
+    if bad.any():
+        i, v = (int(x) for x in np.argwhere(bad)[0][:2])
+        raise InputError("path", f"{_where(frames[i], path)}: expected finite vertices, found "
+                                 f"NaN/inf at vertex {v}")
+    return MeshSequence(vertices=vertices, faces=faces, uv=uv, uv_faces=uv_faces, groups=groups,
+                        fps=fps)
+
+
+def _save_npz(path: str, mesh: MeshSequence, compress: bool) -> None:
+    arrays: dict[str, np.ndarray] = {"vertices": np.asarray(mesh.vertices, np.float32),
+                                     "faces": np.asarray(mesh.faces),
+                                     "fps": np.asarray(float(mesh.fps))}
+    if mesh.uv is not None:
+        arrays["uv"] = np.asarray(mesh.uv, np.float32)
+    if mesh.uv_faces is not None:
+        arrays["uv_faces"] = np.asarray(mesh.uv_faces)
+    for name, idx in mesh.groups.items():
+        arrays[f"groups/{name}"] = np.asarray(idx)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        (np.savez_compressed if compress else np.savez)(fh, **arrays)
+
+
+# -- USD ------------------------------------------------------------------------------------
+
+def _usd_error(err: Exception) -> str:
+    lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
+    return lines[-1] if lines else type(err).__name__
+
+
+def _open_usd_mesh(path: str, prim: str):
+    from pxr import Tf, Usd, UsdGeom
+
+    if not os.path.isfile(path):
+        raise InputError("path", f"file '{path}': expected a USD file, found it missing")
+    try:
+        stage = Usd.Stage.Open(path)
+    except Tf.ErrorException as err:
+        raise InputError("path", f"file '{path}': expected a readable USD stage, found an unreadable "
+                                 f"or truncated file ({_usd_error(err)})") from err
+    if prim:
+        found = stage.GetPrimAtPath(prim) if prim.startswith("/") else None
+        if not found or not found.IsA(UsdGeom.Mesh):
+            raise InputError("prim", f"file '{path}': expected a UsdGeom.Mesh at '{prim}', found "
+                                     f"{found.GetTypeName() or 'an untyped prim' if found else 'none'}")
+    else:
+        found = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
+        if found is None:
+            raise InputError("path", f"file '{path}': expected a UsdGeom.Mesh prim, found none")
+    return stage, UsdGeom.Mesh(found)
+
+
+def _usd_times(mesh) -> list[float]:
+    from pxr import Usd
+
+    times = list(mesh.GetPointsAttr().GetTimeSamples())
+    return times if times else [Usd.TimeCode.Default()]
+
+
+def _usd_topology(mesh, time) -> tuple[np.ndarray, np.ndarray]:
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+    if counts.sum() != indices.size:
+        raise ValueError(f"faceVertexCounts sum to {int(counts.sum())}, faceVertexIndices has "
+                         f"{indices.size}")
+    corners = fan_triangulate(counts)
+    return indices[corners].astype(np.int32), corners
+
+
+def _usd_points(mesh, time, scale: float) -> np.ndarray:
+    from pxr import UsdGeom
+
+    points = np.asarray(mesh.GetPointsAttr().Get(time), dtype=np.float64).reshape(-1, 3)
+    xf = np.asarray(UsdGeom.Xformable(mesh.GetPrim()).ComputeLocalToWorldTransform(time))
+    if not np.array_equal(xf, np.eye(4)):
+        points = points @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
+    return (points * scale).astype(np.float32)
+
+
+def _usd_uv(mesh, corners: np.ndarray, nv: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    from pxr import UsdGeom
+
+    primvar = UsdGeom.PrimvarsAPI(mesh.GetPrim()).GetPrimvar("st")
+    if not primvar or not primvar.HasValue():
+        return None, None
+    values = np.asarray(primvar.Get(), dtype=np.float32).reshape(-1, 2)
+    interp = primvar.GetInterpolation()
+    if interp in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+        flat = np.asarray(primvar.ComputeFlattened(), dtype=np.float32).reshape(-1, 2)
+        if len(flat) != nv:
+            raise ValueError(f"primvar 'st' ({interp}) has {len(flat)} values for {nv} points")
+        return flat, None
+    if interp == UsdGeom.Tokens.faceVarying:
+        indices = primvar.GetIndices() if primvar.IsIndexed() else None
+        corner_uv = np.asarray(indices, np.int64) if indices is not None else np.arange(len(values))
+        return values, corner_uv[corners].astype(np.int32)
+    return None, None  # constant/uniform uv cannot be expressed by a MeshSequence
+
+
+def _usd_groups(mesh) -> dict[str, np.ndarray]:
+    from pxr import UsdGeom
+
+    groups = {}
+    for subset in UsdGeom.Subset.GetAllGeomSubsets(mesh):
+        if subset.GetElementTypeAttr().Get() != UsdGeom.Tokens.point:
+            continue
+        prim = subset.GetPrim()
+        name = prim.GetCustomDataByKey(_GROUP_NAME_KEY) or prim.GetName()
+        groups[str(name)] = np.asarray(subset.GetIndicesAttr().Get() or [], dtype=np.int64)
+    return groups
+
+
+def _usd_frame_count(path: str, prim: str) -> int:
+    _, mesh = _open_usd_mesh(path, prim)
+    return len(_usd_times(mesh))
+
+
+def _load_usd(path: str, frames: range, prim: str, fps: float) -> MeshSequence:
+    from pxr import UsdGeom
+
+    stage, mesh = _open_usd_mesh(path, prim)
+    times = _usd_times(mesh)
+    _check_range(frames, len(times), path)
+    scale = UsdGeom.GetStageMetersPerUnit(stage) / 0.01
+    if stage.HasAuthoredMetadata("timeCodesPerSecond"):
+        fps = float(stage.GetTimeCodesPerSecond())
+    where = f"file '{path}', prim '{mesh.GetPath()}'"
+    try:
+        faces, corners = _usd_topology(mesh, times[0])
+        ref = MeshFrame(_usd_points(mesh, times[0], scale), faces)
+        varying = (mesh.GetFaceVertexIndicesAttr().GetNumTimeSamples() > 1
+                   or mesh.GetFaceVertexCountsAttr().GetNumTimeSamples() > 1)
+        uv, uv_faces = _usd_uv(mesh, corners, len(ref.vertices))
+    except (ValueError, TypeError) as err:
+        raise InputError("path", f"frame 0 ({where}): expected a valid mesh, found {err}") from err
+    out = np.empty((len(frames), len(ref.vertices), 3), np.float32)
+    for i, f in enumerate(frames):
+        vertices = ref.vertices if f == 0 else _usd_points(mesh, times[f], scale)
+        try:
+            frame_faces = _usd_topology(mesh, times[f])[0] if varying and f else None
+        except ValueError as err:
+            raise InputError("path", f"frame {f} ({where}): expected a valid mesh, found {err}") from err
+        _check_frame(f, path, vertices, frame_faces, ref if f else None, path)
+        out[i] = vertices
+    return MeshSequence(vertices=out, faces=faces, uv=uv, uv_faces=uv_faces,
+                        groups=_usd_groups(mesh), fps=fps)
+
+
+def _save_usd(path: str, mesh: MeshSequence, times: range, prim: str) -> None:
+    from pxr import Sdf, Tf, Usd, UsdGeom, Vt
+
+    if not (Sdf.Path.IsValidPathString(prim) and Sdf.Path(prim).IsAbsolutePath()
+            and Sdf.Path(prim).IsPrimPath()):
+        raise InputError("prim", f"expected an absolute prim path such as '/mesh', found '{prim}'")
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    stage.SetTimeCodesPerSecond(float(mesh.fps))
+    stage.SetFramesPerSecond(float(mesh.fps))
+    if len(times):
+        stage.SetStartTimeCode(times[0])
+        stage.SetEndTimeCode(times[-1])
+    geom = UsdGeom.Mesh.Define(stage, prim)
+    stage.SetDefaultPrim(stage.GetPrimAtPath(Sdf.Path(prim).GetPrefixes()[0]))
+    faces = np.asarray(mesh.faces, np.int32)
+    geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+    geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+    geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    points, extent = geom.CreatePointsAttr(), geom.CreateExtentAttr()
+    vertices = np.asarray(mesh.vertices, np.float32)
+    for i, t in enumerate(times):
+        points.Set(Vt.Vec3fArray.FromNumpy(vertices[i]), t)
+        if vertices.shape[1]:
+            box = np.stack([vertices[i].min(axis=0), vertices[i].max(axis=0)])
+            extent.Set(Vt.Vec3fArray.FromNumpy(box), t)
+    if mesh.uv is not None:
+        interp = UsdGeom.Tokens.vertex if mesh.uv_faces is None else UsdGeom.Tokens.faceVarying
+        primvar = UsdGeom.PrimvarsAPI(geom.GetPrim()).CreatePrimvar(
+            "st", Sdf.ValueTypeNames.TexCoord2fArray, interp)
+        primvar.Set(Vt.Vec2fArray.FromNumpy(np.asarray(mesh.uv, np.float32)))
+        if mesh.uv_faces is not None:
+            primvar.SetIndices(Vt.IntArray.FromNumpy(np.asarray(mesh.uv_faces, np.int32).reshape(-1)))
+    used: set[str] = set()
+    for name, idx in mesh.groups.items():
+        child = Tf.MakeValidIdentifier(name)
+        while child in used:
+            child += "_"
+        used.add(child)
+        subset = UsdGeom.Subset.Define(stage, geom.GetPath().AppendChild(child))
+        subset.CreateElementTypeAttr(UsdGeom.Tokens.point)
+        subset.CreateFamilyNameAttr(_GROUP_FAMILY)
+        subset.CreateIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(idx, np.int32)))
+        if child != name:
+            subset.GetPrim().SetCustomDataByKey(_GROUP_NAME_KEY, name)
+    with atomic_path(path) as tmp:
+        if not stage.GetRootLayer().Export(os.fspath(tmp)):
+            raise OSError(f"could not write USD file '{path}'")
+
+
+# -- public entry points -------------------------------------------------------------------
+
+def mesh_frame_count(path: str, *, prim: str = "", first_frame: int | None = None) -> int:
+    """Return how many frames `path` holds (0 when a pattern matches no file).
+
+    For numbered files: highest number found - first number + 1 (gaps are reported as
+    missing frames when read).
+    """
+    fmt = format_of(path, MESH_FORMATS)
+    if frame_token(path) is not None:
+        first, numbers = _resolve_first(path, first_frame)
+        return max(0, numbers[-1] - first + 1) if numbers and first is not None else 0
+    if not os.path.isfile(path):
+        return 0
+    if fmt == "npz":
+        try:
+            return int(npz_shape(path, "vertices")[0][0])
+        except (KeyError, ValueError, OSError, IndexError, zipfile.BadZipFile):
+            return 0
+    if fmt == "usd":
+        return _usd_frame_count(path, prim)
+    raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
+                             f"{fmt.upper()} files, found a single file name")
+
+
+def load_mesh_sequence(path: str, frames: range, *, prim: str = "", first_frame: int | None = None,
+                       fps: float = 30.0) -> MeshSequence:
+    """Read frames `frames` (0-based) of a mesh sequence, reading only those frames.
+
+    Args:
+        path: numbered OBJ/PLY pattern, .npz, or .usd/.usda/.usdc (see the module docstring).
+        frames: run frames to read; frame f is file number first_frame + f, the f-th NPZ row
+            or the f-th USD time sample.
+        prim: USD Mesh prim path; "" = the first Mesh of the stage.
+        first_frame: number of the file of frame 0; None = the lowest number found.
+        fps: frames per second when the file stores none.
+    Returns:
+        MeshSequence with len(frames) frames, vertices in cm.
+    Raises:
+        InputError: naming the file and frame: missing or unreadable file, vertex count or
+            faces differing from frame 0, non-finite vertices, unknown extension.
+    """
+    fmt = format_of(path, MESH_FORMATS)
+    if frame_token(path) is not None:
+        if fmt not in _PER_FRAME_FORMATS:
+            raise InputError("path", f"'{path}': expected a single .{fmt} file, found a numbered "
+                                     "pattern (numbered files are OBJ or PLY)")
+        return _load_numbered(path, fmt, frames, first_frame, fps)
+    if fmt == "npz":
+        if not os.path.isfile(path):
+            raise InputError("path", f"file '{path}': expected an .npz file, found it missing")
+        return _load_npz(path, frames, fps)
+    if fmt == "usd":
+        return _load_usd(path, frames, prim, fps)
+    raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
+                             f"{fmt.upper()} files, found a single file name")
+
+
+def save_mesh_sequence(path: str, mesh: MeshSequence, frames: range, *, first_frame: int = 0,
+                       prim: str = "/mesh", compress: bool = False,
+                       progress=None) -> list[str]:
+    """Write `mesh` (covering run frames `frames`) atomically; return the written paths.
+
+    Args:
+        path: numbered OBJ/PLY pattern (file number = first_frame + run frame), .npz or USD.
+        mesh: the sequence; len(frames) == mesh.num_frames.
+        frames: run frames of the sequence (USD time code = run frame).
+        first_frame: file number of run frame 0 for patterns.
+        prim: USD prim path of the Mesh.
+        compress: NPZ only: zip-deflate the arrays (loads then stream instead of mmap).
+        progress: optional callback(fraction, message).
+    Raises:
+        InputError: unknown extension, a single OBJ/PLY name, a numbered NPZ/USD name, or
+            face-varying uv to PLY (which stores per-vertex uv only).
+    """
+    fmt = format_of(path, MESH_FORMATS)
+    numbered = frame_token(path) is not None
+    if numbered != (fmt in _PER_FRAME_FORMATS):
+        expected = f"a numbered pattern such as 'face.%04d.{fmt}'" if not numbered else \
+            f"a single .{fmt} file"
+        raise InputError("path", f"'{path}': expected {expected} for {fmt.upper()}")
+    if not numbered:
+        if fmt == "npz":
+            _save_npz(path, mesh, compress)
+        else:
+            _save_usd(path, mesh, frames, prim)
+        return [path]
+    if fmt == "ply" and mesh.uv_faces is not None:
+        raise InputError("mesh", f"'{path}': PLY stores per-vertex uv only, found face-varying uv "
+                                 "(uv_faces); write OBJ, NPZ or USD instead")
+    written = []
+    for i, f in enumerate(frames):
+        file = expand_frame_pattern(path, first_frame + f)
+        with atomic_path(file) as tmp:
+            if fmt == "obj":
+                write_obj(tmp, mesh.vertices[i], mesh.faces, mesh.uv, mesh.uv_faces)
+            else:
+                write_ply(tmp, mesh.vertices[i], mesh.faces, mesh.uv)
+        written.append(file)
+        if progress is not None:
+            progress((i + 1) / len(frames), f"wrote {file}")
+    return written
+
+
+# -- nodes ----------------------------------------------------------------------------------
+
+class LoadMeshSequence(Node):
+    """Read a mesh sequence: numbered OBJ/PLY files, an .npz, or a USD Mesh."""
+
+    type_name = "io.LoadMeshSequence"
+    version = 1
+    kind = FRAMEWISE
+
+    class Params(NodeParams):
+        path: str = Param(..., input_file=True, description="Numbered pattern (face.%04d.obj, "
+                          "face.####.ply, face.{frame:04d}.obj), .npz, or .usd/.usda/.usdc file.")
+        prim: str = Param("", description="USD only: Mesh prim path; empty = the first Mesh found.")
+        first_frame: int | None = Param(None, description="Numbered files: number of the file of "
+                                        "frame 0; None = the lowest number found.")
+        fps: float = Param(30.0, gt=0, description="Frames per second used when the file "
+                           "carries none (1/s).")
+
+    mesh = Out(MeshSequence, doc="Vertices (F, V, 3) in cm with the file's topology.")
+
+    def frame_count(self) -> int | None:
+        p = self.params
+        return mesh_frame_count(p.path, prim=p.prim, first_frame=p.first_frame)
+
+    def input_files(self) -> list[Path]:
+        return pattern_files(self.params.path)
+
+    def run(self) -> dict[str, MeshSequence]:
+        p = self.params
+        return {"mesh": load_mesh_sequence(p.path, self.frames, prim=p.prim,
+                                           first_frame=p.first_frame, fps=p.fps)}
+
+
+class SaveMeshSequence(Node):
+    """Write a whole mesh sequence: .npz, USD, or numbered OBJ/PLY files (sequence kind).
+
+    Use `io.SaveMeshFrames` to write numbered files chunk by chunk in parallel.
+    """
+
+    type_name = "io.SaveMeshSequence"
+    version = 1
+    kind = SEQUENCE
+    cacheable = False
+
+    class Params(NodeParams):
+        path: str = Param(..., description="Destination: .npz, .usd/.usda/.usdc, or a numbered "
+                          "OBJ/PLY pattern (face.%04d.obj).")
+        first_frame: int = Param(0, description="Numbered files: file number of run frame 0.")
+        prim: str = Param("/mesh", description="USD only: path of the Mesh prim written.")
+        compress: bool = Param(False, description="NPZ only: deflate the arrays (smaller file; "
+                               "chunked loads then stream instead of memory-mapping).")
+
+    mesh = In(MeshSequence, doc="The sequence to write.")
+    files = Out(Files, doc="Written paths and their sha256.")
+
+    def run(self, mesh: MeshSequence) -> dict[str, Files]:
+        p = self.params
+        written = save_mesh_sequence(p.path, mesh, self.frames, first_frame=p.first_frame,
+                                     prim=p.prim, compress=p.compress, progress=self.progress)
+        return {"files": files_value(written)}
+
+
+class SaveMeshFrames(Node):
+    """Write numbered OBJ/PLY files, one per frame (framewise: each chunk writes its own)."""
+
+    type_name = "io.SaveMeshFrames"
+    version = 1
+    kind = FRAMEWISE
+    cacheable = False
+
+    class Params(NodeParams):
+        path: str = Param(..., description="Numbered OBJ/PLY pattern (face.%04d.obj, "
+                          "face.####.ply, face.{frame:04d}.obj).")
+        first_frame: int = Param(0, description="File number of run frame 0.")
+
+    mesh = In(MeshSequence, doc="The frames to write.")
+    files = Out(Files, doc="Paths written by this chunk and their sha256.")
+
+    def run(self, mesh: MeshSequence) -> dict[str, Files]:
+        p = self.params
+        if frame_token(p.path) is None:
+            raise InputError("path", f"expected a numbered OBJ/PLY pattern such as "
+                                     f"'face.%04d.obj', found '{p.path}' (use io.SaveMeshSequence "
+                                     "for .npz and USD)")
+        written = save_mesh_sequence(p.path, mesh, self.frames, first_frame=p.first_frame,
+                                     progress=self.progress)
+        return {"files": files_value(written)}
