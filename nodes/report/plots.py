@@ -1,0 +1,279 @@
+"""Plots of captures: head-motion curves and per-vertex position histograms (Agg, no screen).
+
+`plot_position_histograms` reproduces Fig. 5 of the mode-pursuit paper: over time, a vertex's
+position (one coordinate, mean removed) is blurred by head motion in world space, while in
+the skull frame it has a sharp mode at rest. `position_spread` gives that as a number (the
+median absolute deviation per vertex and coordinate, cm).
+
+Figures are drawn on `matplotlib.figure.Figure` objects (no pyplot state, safe in threads) and
+written atomically: a temporary name in the same folder, then `os.replace`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping, NamedTuple, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from scipy.spatial.transform import Rotation
+
+from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
+
+__all__ = [
+    "rigid_to_euler_translation", "invert_rigid", "stabilize_points", "default_vertices",
+    "PositionSpread", "position_spread", "plot_head_motion", "plot_position_histograms",
+    "save_figure", "file_sha256", "CaptureReport",
+]
+
+_AXES = ("x", "y", "z")
+
+
+def rigid_to_euler_translation(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split skull-to-world matrices into extrinsic XYZ Euler angles and translations.
+
+    Args:
+        matrices: (F, 4, 4) float, `x_world = M @ [x_skull, 1]`.
+    Returns:
+        angles (F, 3) degrees, with `R = Rz(z) Ry(y) Rx(x)` (scipy "xyz"); translation (F, 3) cm.
+    """
+    matrices = np.asarray(matrices, dtype=np.float64)
+    if matrices.ndim != 3 or matrices.shape[1:] != (4, 4):
+        raise ValueError(f"matrices: expected shape (F, 4, 4), found {matrices.shape}")
+    if len(matrices) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    angles = Rotation.from_matrix(matrices[:, :3, :3]).as_euler("xyz", degrees=True)
+    return angles, matrices[:, :3, 3].copy()
+
+
+def invert_rigid(matrices: np.ndarray) -> np.ndarray:
+    """Invert rigid 4x4 transforms: [R, t]^-1 = [R^T, -R^T t].
+
+    Args:
+        matrices: (..., 4, 4) float64 rigid transforms.
+    Returns:
+        (..., 4, 4) float64.
+    """
+    rot_t = np.swapaxes(matrices[..., :3, :3], -1, -2)
+    out = np.zeros_like(matrices, dtype=np.float64)
+    out[..., :3, :3] = rot_t
+    out[..., :3, 3] = -(rot_t @ matrices[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def stabilize_points(matrices: np.ndarray, world: np.ndarray) -> np.ndarray:
+    """Bring world points into the skull frame: `x_skull = M_f^-1 x_world`.
+
+    Args:
+        matrices: (F, 4, 4) float64 skull-to-world.
+        world: (F, V, 3) cm, world frame.
+    Returns:
+        (F, V, 3) float32 cm, skull frame.
+    """
+    inverse = invert_rigid(np.asarray(matrices, np.float64))
+    out = np.einsum("fij,fvj->fvi", inverse[:, :3, :3], world.astype(np.float64))
+    return (out + inverse[:, None, :3, 3]).astype(np.float32)
+
+
+def default_vertices(count_vertices: int, count: int = 4) -> np.ndarray:
+    """`count` evenly spaced vertex indices in 0..V-1 (at most V)."""
+    return np.unique(np.linspace(0, max(count_vertices - 1, 0), min(count, count_vertices)).round()
+                     .astype(np.int64))
+
+
+class PositionSpread(NamedTuple):
+    """Median absolute deviation (cm) of positions over time.
+
+    Attributes:
+        world: (N, 3) per chosen vertex and coordinate, world frame.
+        skull: label -> (N, 3), skull frame.
+    """
+
+    world: np.ndarray
+    skull: dict[str, np.ndarray]
+
+
+def _mad(positions: np.ndarray) -> np.ndarray:
+    """(F, N, 3) -> (N, 3) median absolute deviation over frames."""
+    return np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)
+
+
+def _as_mapping(skull: np.ndarray | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return dict(skull) if isinstance(skull, Mapping) else {"skull": skull}
+
+
+def _check_positions(name: str, value: np.ndarray, like: tuple[int, ...] | None = None) -> np.ndarray:
+    value = np.asarray(value)
+    if value.ndim != 3 or value.shape[2] != 3:
+        raise ValueError(f"{name}: expected shape (F, V, 3), found {value.shape}")
+    if like is not None and value.shape != like:
+        raise ValueError(f"{name}: expected shape {like} (from world), found {value.shape}")
+    return value
+
+
+def position_spread(world: np.ndarray, skull: np.ndarray | Mapping[str, np.ndarray],
+                    vertices: Sequence[int] | None = None) -> PositionSpread:
+    """Spread over time of some vertices' positions, in world and in the skull frame(s).
+
+    Args:
+        world: (F, V, 3) cm, world frame.
+        skull: (F, V, 3) cm, skull frame, or label -> (F, V, 3) (several stabilizations).
+        vertices: N vertex indices; None = `default_vertices(V)`.
+    Returns:
+        PositionSpread (median absolute deviations, cm); a sharp rest mode gives a small one.
+    Raises:
+        ValueError: shapes disagree or a vertex index is outside 0..V-1.
+    """
+    world = _check_positions("world", world)
+    skulls = {k: _check_positions(f"skull['{k}']", v, world.shape) for k, v in _as_mapping(skull).items()}
+    ids = default_vertices(world.shape[1]) if vertices is None else np.asarray(vertices, np.int64)
+    if ids.size and (ids.min() < 0 or ids.max() >= world.shape[1]):
+        raise ValueError(f"vertices: expected indices in 0..{world.shape[1] - 1}, found "
+                         f"{int(ids.min())}..{int(ids.max())}")
+    return PositionSpread(_mad(world[:, ids].astype(np.float64)),
+                          {k: _mad(v[:, ids].astype(np.float64)) for k, v in skulls.items()})
+
+
+def save_figure(fig: Figure, path: str | os.PathLike) -> Path:
+    """Write `fig` as PNG atomically (temp file in the same folder, then os.replace)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            fig.savefig(handle, format="png", dpi=100)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,
+                     fps: float = 30.0) -> Path:
+    """Plot rotation angles (deg, extrinsic XYZ) and translations (cm) vs frame, one line per label.
+
+    The translation is the matrices' translation column (where the skull-frame origin goes),
+    which includes the effect of rotating about a pivot away from the origin.
+
+    Args:
+        curves: label -> (F, 4, 4) skull-to-world matrices (e.g. "truth", "estimate").
+        path: PNG file to write.
+        fps: frames per second (top axis in seconds).
+    Returns:
+        The written path.
+    """
+    if not curves:
+        raise ValueError("curves: expected at least one label -> (F, 4, 4) matrices, found none")
+    fig = Figure(figsize=(12, 6), layout="constrained")
+    axes = fig.subplots(2, 3, sharex=True)
+    for label, matrices in curves.items():
+        try:
+            angles, trans = rigid_to_euler_translation(matrices)
+        except ValueError as err:
+            raise ValueError(f"curves['{label}']: {err}") from err
+        frames = np.arange(len(angles))
+        for c in range(3):
+            axes[0, c].plot(frames, angles[:, c], label=label, linewidth=1)
+            axes[1, c].plot(frames, trans[:, c], label=label, linewidth=1)
+    for c, name in enumerate(_AXES):
+        axes[0, c].set_title(f"rotation about {name} (deg)")
+        axes[1, c].set_title(f"translation {name} (cm)")
+        axes[1, c].set_xlabel("frame")
+        top = axes[0, c].secondary_xaxis("top", functions=(lambda f: f / fps, lambda s: s * fps))
+        top.set_xlabel("s")
+        for row in range(2):
+            axes[row, c].grid(alpha=0.3)
+    axes[0, 0].legend(loc="best", fontsize="small")
+    return save_figure(fig, path)
+
+
+def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str, np.ndarray],
+                             path: str | os.PathLike, vertices: Sequence[int] | None = None,
+                             bins: int = 60) -> Path:
+    """Histograms over time of a few vertices' positions, world vs skull frame (paper Fig. 5).
+
+    One row per vertex, one column per coordinate; each panel overlays the mean-removed
+    positions in world (grey) and in each skull frame (coloured), on shared bins. The legend
+    gives each one's median absolute deviation (see `position_spread`).
+
+    Args:
+        world: (F, V, 3) cm, world frame.
+        skull: (F, V, 3) cm, skull frame, or label -> (F, V, 3).
+        path: PNG file to write.
+        vertices: vertex indices; None = `default_vertices(V)` (4 evenly spaced).
+        bins: histogram bins per panel.
+    Returns:
+        The written path.
+    """
+    spread = position_spread(world, skull, vertices)
+    skulls = _as_mapping(skull)
+    ids = default_vertices(world.shape[1]) if vertices is None else np.asarray(vertices, np.int64)
+    fig = Figure(figsize=(12, 2.6 * max(len(ids), 1)), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(max(len(ids), 1), 3, squeeze=False))
+    for row, vertex in enumerate(ids):
+        for c in range(3):
+            ax = axes[row, c]
+            series = {"world": world[:, vertex, c]} | {k: v[:, vertex, c] for k, v in skulls.items()}
+            series = {k: np.asarray(s, np.float64) - np.mean(s) for k, s in series.items()}
+            hi = max(float(np.abs(s).max(initial=0.0)) for s in series.values()) or 1.0
+            edges = np.linspace(-hi, hi, bins + 1)
+            for k, s in series.items():
+                mad = spread.world[row, c] if k == "world" else spread.skull[k][row, c]
+                ax.hist(s, bins=edges, histtype="stepfilled" if k == "world" else "step",
+                        color="0.7" if k == "world" else None, linewidth=1.2,
+                        label=f"{k} (MAD {mad:.3f} cm)")
+            ax.set_title(f"vertex {int(vertex)}, {_AXES[c]} - mean (cm)", fontsize="small")
+            ax.legend(fontsize="x-small")
+    axes[-1, 0].set_ylabel("frames")
+    return save_figure(fig, path)
+
+
+class CaptureReport(Node):
+    """Plot a capture's head motion and its vertex histograms in world vs skull frame."""
+
+    type_name = "report.CaptureReport"
+    version = 1
+    kind = SEQUENCE
+    cacheable = False
+
+    class Params(NodeParams):
+        folder: str = Param("report", description="output folder (created if missing)")
+        vertices: list[int] = Param([], description="vertices for the histograms; [] = 4 evenly "
+                                                    "spaced")
+
+    capture = In(MeshSequence, doc="captured world-space mesh (cm)")
+    rigid = In(RigidSequence, doc="skull-to-world transforms, x_world = M_f x_skull")
+    files = Out(Files, doc="head_motion.png and histograms.png")
+
+    def run(self, capture: MeshSequence, rigid: RigidSequence) -> dict[str, Files]:
+        if rigid.num_frames != capture.num_frames:
+            raise InputError("rigid", f"expected {capture.num_frames} frames (as 'capture'), "
+                                      f"found {rigid.num_frames}")
+        vertices = list(self.params.vertices) or None
+        v = capture.num_vertices
+        if vertices is not None and (min(vertices) < 0 or max(vertices) >= v):
+            raise InputError("vertices", f"expected indices in 0..{v - 1}, found {vertices}")
+        folder = Path(self.params.folder)
+        skull = stabilize_points(rigid.matrices, capture.vertices)
+        self.progress(0.1, "head motion")
+        paths = [plot_head_motion({"rigid": rigid.matrices}, folder / "head_motion.png", capture.fps)]
+        self.progress(0.5, "histograms")
+        paths.append(plot_position_histograms(capture.vertices, {"skull": skull},
+                                              folder / "histograms.png", vertices))
+        return {"files": Files(paths=[str(p) for p in paths], sha256=[file_sha256(p) for p in paths])}
