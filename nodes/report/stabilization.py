@@ -6,13 +6,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence, Table
 from nodegraph.graph import write_text_atomic
 
-from .metrics import stabilization_errors
+from .metrics import StabilizationErrors, stabilization_errors
 from .plots import file_sha256, plot_head_motion, plot_position_histograms, stabilize_points
 
 __all__ = ["error_table", "StabilizationReport"]
@@ -21,19 +19,11 @@ ESTIMATE_PORTS = ("estimate_1", "estimate_2", "estimate_3", "estimate_4")
 COLUMNS = ["method", "median_cm", "mean_cm", "p95_cm", "rot_median_deg", "rot_max_deg", "trans_median_cm"]
 
 
-def error_table(estimates: dict[str, np.ndarray], truth_rigid: np.ndarray, truth: np.ndarray) -> Table:
-    """One row of `stabilization_errors(...).summary()` per estimate.
-
-    Args:
-        estimates: label -> (F, 4, 4) estimated skull-to-world transforms.
-        truth_rigid: (F, 4, 4) true skull-to-world transforms.
-        truth: (F, V, 3) true noise-free skull-frame mesh, cm.
-    Returns:
-        Table with COLUMNS (errors in cm and degrees).
-    """
+def error_table(errors: dict[str, StabilizationErrors]) -> Table:
+    """One row of `StabilizationErrors.summary()` per method (errors in cm and degrees)."""
     rows = []
-    for label, matrices in estimates.items():
-        summary = stabilization_errors(matrices, truth_rigid, truth).summary()
+    for label, err in errors.items():
+        summary = err.summary()
         rows.append([label] + [round(summary[c], 6) for c in COLUMNS[1:]])
     return Table(list(COLUMNS), rows)
 
@@ -94,18 +84,25 @@ class StabilizationReport(Node):
             raise InputError("histogram_vertices", f"vertex {max(ids)} outside 0..{capture.num_vertices - 1}")
         folder = Path(self.params.folder)
         written = []
-        curves = ({"truth": truth_rigid.matrices} if truth_rigid is not None else {}) | given
+        table = Table(list(COLUMNS), [])
+        curves = dict(given)
+        if truth is not None:
+            errors = {label: stabilization_errors(m, truth_rigid.matrices, truth.vertices)
+                      for label, m in given.items()}
+            # Each estimate's skull frame differs from the truth's by one rigid offset G:
+            # plot estimate @ G so that the curves are comparable.
+            curves = {"truth": truth_rigid.matrices} | {
+                f"{label} (aligned)": given[label] @ err.offset for label, err in errors.items()}
+            if errors:
+                table = error_table(errors)
+                write_text_atomic(folder / "errors.md", _markdown(table))
+                write_text_atomic(folder / "errors.json", json.dumps(
+                    {"columns": table.columns, "rows": table.rows}, indent=1) + "\n")
+                written += [folder / "errors.md", folder / "errors.json"]
+        self.progress(0.2, "errors measured")
         written.append(plot_head_motion(curves, folder / "head_motion.png", fps=capture.fps))
-        self.progress(0.3, "head motion plotted")
+        self.progress(0.5, "head motion plotted")
         skulls = {label: stabilize_points(m, capture.vertices) for label, m in curves.items()}
         written.append(plot_position_histograms(capture.vertices, skulls, folder / "histograms.png", ids))
-        self.progress(0.7, "histograms plotted")
-        table = Table(list(COLUMNS), [])
-        if truth is not None and given:
-            table = error_table(given, truth_rigid.matrices, truth.vertices)
-            write_text_atomic(folder / "errors.md", _markdown(table))
-            write_text_atomic(folder / "errors.json", json.dumps(
-                {"columns": table.columns, "rows": table.rows}, indent=1) + "\n")
-            written += [folder / "errors.md", folder / "errors.json"]
         paths = [str(p) for p in written]
         return {"files": Files(paths, [file_sha256(p) for p in paths]), "table": table}

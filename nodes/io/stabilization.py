@@ -1,0 +1,50 @@
+"""Write a stabilization result as one NPZ: the rigid transforms and the stabilized mesh."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
+from nodegraph import RigidSequence
+
+from ._files import atomic_path, files_value
+
+__all__ = ["save_stabilization", "SaveStabilization"]
+
+
+def save_stabilization(path: str, rigid: RigidSequence, mesh: MeshSequence) -> None:
+    """Write `rigid` [F,4,4] (skull-to-world, `world = rigid @ skull`) and the stabilized
+    `vertices` [F,V,3] (cm), plus `faces` and `fps`, to one NPZ, atomically.
+
+    Raises:
+        InputError: frame counts differ, or `path` does not end in .npz.
+    """
+    if Path(path).suffix.lower() != ".npz":
+        raise InputError("path", f"expected a .npz file, found '{path}'")
+    if rigid.num_frames != mesh.num_frames:
+        raise InputError("rigid", f"expected {mesh.num_frames} frames (as mesh), found {rigid.num_frames}")
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, rigid=rigid.matrices.astype(np.float64), vertices=mesh.vertices.astype(np.float32),
+                 faces=mesh.faces, fps=np.float64(mesh.fps))
+
+
+class SaveStabilization(Node):
+    """Write `rigid` (skull-to-world) and the stabilized `vertices` to one NPZ file."""
+
+    type_name = "io.SaveStabilization"
+    version = 1
+    kind = SEQUENCE
+    cacheable = False
+
+    class Params(NodeParams):
+        path: str = Param("out/stabilized.npz", description="Output .npz (keys rigid, vertices, faces, fps).")
+
+    rigid = In(RigidSequence, doc="Skull-to-world transforms, world = rigid @ skull.")
+    mesh = In(MeshSequence, doc="Stabilized mesh (skull frame), cm.")
+    files = Out(Files, doc="The written file and its sha256.")
+
+    def run(self, rigid: RigidSequence, mesh: MeshSequence) -> dict[str, Files]:
+        save_stabilization(self.params.path, rigid, mesh)
+        return {"files": files_value([self.params.path])}
