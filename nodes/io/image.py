@@ -264,7 +264,11 @@ class LoadImageSequence(Node):
     images = Out(ImageSequence, doc="Pixels (F, H, W, C) float32, integer files scaled to [0, 1].")
 
     def frame_count(self) -> int | None:
-        return image_frame_count(self.params.path, self.params.first_frame)
+        p = self.params
+        count = image_frame_count(p.path, p.first_frame)
+        if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
+            load_image_sequence(p.path, range(0, 1), first_frame=p.first_frame, fps=p.fps)
+        return count
 
     def input_files(self) -> list[Path]:
         return pattern_files(self.params.path)

@@ -665,7 +665,10 @@ class LoadMeshSequence(Node):
 
     def frame_count(self) -> int | None:
         p = self.params
-        return mesh_frame_count(p.path, prim=p.prim, first_frame=p.first_frame)
+        count = mesh_frame_count(p.path, prim=p.prim, first_frame=p.first_frame)
+        if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
+            load_mesh_sequence(p.path, range(0, 1), prim=p.prim, first_frame=p.first_frame, fps=p.fps)
+        return count
 
     def input_files(self) -> list[Path]:
         return pattern_files(self.params.path)

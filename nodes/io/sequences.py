@@ -316,7 +316,10 @@ class LoadRigidSequence(Node):
     rigid = Out(RigidSequence, doc="Skull-to-world matrices (F, 4, 4) float64, cm.")
 
     def frame_count(self) -> int | None:
-        return sequence_frame_count(self.params.path)
+        count = sequence_frame_count(self.params.path)
+        if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
+            load_rigid_sequence(self.params.path, range(0, 1))
+        return count
 
     def input_files(self) -> list[Path]:
         return [Path(self.params.path)] if os.path.isfile(self.params.path) else []
@@ -353,7 +356,10 @@ class LoadParamSequence(Node):
     params = Out(ParamSequence, doc="Values (F, K) float32 with K names.")
 
     def frame_count(self) -> int | None:
-        return sequence_frame_count(self.params.path)
+        count = sequence_frame_count(self.params.path)
+        if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
+            load_param_sequence(self.params.path, range(0, 1))
+        return count
 
     def input_files(self) -> list[Path]:
         return [Path(self.params.path)] if os.path.isfile(self.params.path) else []

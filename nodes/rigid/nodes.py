@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, RigidSequence)
 
+from ..io.face_model import farthest_point_sampling
 from .icp import robust_icp, vertex_normals
 from .kabsch import apply_rigid, fit_rigid, invert_rigid, rigid_matrix
 
@@ -293,6 +294,9 @@ class ICP(Node):
             "geman_mcclure", description="Robust loss of the residuals.")
         tolerance_cm: float = Param(1e-5, ge=0, description="Stop a frame when an iteration moves "
                                                             "no point more than this (cm).")
+        max_points: int = Param(1000, ge=0, description="> 0: align at most this many well-spread "
+                                "vertices of `group` (farthest-point sampling on the reference, "
+                                "deterministic); 0 = all of them.")
         workers: int = Param(1, affects_output=False, description="Threads for nearest-neighbour "
                                                                   "queries (-1 = all cores).")
 
@@ -305,6 +309,8 @@ class ICP(Node):
         p = self.params
         ref = _check_reference(reference, mesh)
         idx = _group(mesh, p.group)
+        if p.max_points and len(idx) > p.max_points:
+            idx = idx[farthest_point_sampling(ref[idx], p.max_points)]
         target_idx = _group(reference, p.target_group, "target_group")
         points = mesh.vertices[:, idx].astype(np.float64)
         target = ref[target_idx]
