@@ -1,0 +1,118 @@
+"""The `stabilize.ModePursuit` node: mode-pursuit head stabilization of a tracked mesh sequence.
+
+A thin adapter over `nodes.stabilize.mode_pursuit.mode_pursuit` (the method, its energy and
+its optimizer are documented there).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from pydantic import model_validator
+
+from nodegraph import SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
+
+from .mode_pursuit import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, mode_pursuit, stabilize_vertices
+
+__all__ = ["ModePursuit", "ModePursuitParams"]
+
+
+class ModePursuitParams(NodeParams):
+    """Parameters of `stabilize.ModePursuit` (defaults: the paper's widths)."""
+
+    position_widths: list[float] = Param(list(DEFAULT_POSITION_WIDTHS),
+                                         description="Continuation widths of the position penalty, "
+                                                     "coarse to fine (cm).", min_length=1)
+    velocity_widths: list[float] = Param(list(DEFAULT_VELOCITY_WIDTHS),
+                                         description="Continuation widths of the velocity penalty, "
+                                                     "one per position width (cm/frame).", min_length=1)
+    velocity_weight: float = Param(1.0, ge=0, description="Weight lambda of the velocity term "
+                                                          "(unitless).")
+    spacing: float = Param(8.0, ge=1, description="Control-point spacing of the initial (coarsest) "
+                                                  "dual-quaternion spline (frames).")
+    refinements: int = Param(2, ge=0, le=8, description="Midpoint refinements of the spline during "
+                                                        "the schedule; the final spacing is "
+                                                        "spacing / 2^refinements (frames).")
+    iterations: int = Param(24, ge=0, description="L-BFGS iterations per stage (fixed count).")
+    group: str = Param("", description="Vertex group of the mesh that enters the energy (e.g. the "
+                                       "face region); \"\" = all vertices.")
+    max_vertices: int = Param(2000, ge=3, description="At most this many energy vertices "
+                                                      "(farthest-point sampling, deterministic).")
+    update_rest: bool = Param(True, description="Re-estimate the rest shape (mean shift) before "
+                                                "each stage; ignored when 'rest' is connected.")
+    device: str = Param("auto", affects_output=False, pattern="^(auto|cpu|cuda(:[0-9]+)?)$",
+                        description="Torch device: auto (CUDA when available), cpu or cuda.")
+    compile: bool = Param(False, affects_output=False,
+                          description="torch.compile the energy kernel (one-off compile cost).")
+
+    @model_validator(mode="after")
+    def _check_widths(self) -> "ModePursuitParams":
+        if len(self.velocity_widths) != len(self.position_widths):
+            raise ValueError(f"velocity_widths: expected {len(self.position_widths)} widths (one per "
+                             f"position width), found {len(self.velocity_widths)}")
+        bad = [w for w in self.position_widths + self.velocity_widths if not w > 0]
+        if bad:
+            raise ValueError(f"position_widths/velocity_widths: expected widths > 0, found {bad}")
+        if self.spacing / 2 ** self.refinements < 1.0:
+            raise ValueError(f"refinements: spacing {self.spacing} / 2^{self.refinements} is below "
+                             f"1 frame; use spacing >= {2 ** self.refinements} or fewer refinements")
+        return self
+
+
+class ModePursuit(Node):
+    """Stabilize a tracked face by mode pursuit over a dual-quaternion spline of head motion.
+
+    Finds the skull-to-world motion whose removal brings each vertex back to its rest position
+    as often as possible (bounded penalty on positions and velocities, continuation over widths,
+    coarse-to-fine spline, L-BFGS). Outputs the motion and the stabilized mesh (all vertices).
+    """
+
+    type_name = "stabilize.ModePursuit"
+    version = 1
+    kind = SEQUENCE
+    Params = ModePursuitParams
+
+    mesh = In(MeshSequence, doc="Tracked mesh sequence, world frame, vertices in correspondence, cm.")
+    init = In(RigidSequence, optional=True,
+              doc="Initial skull-to-world motion (e.g. rigid.Procrustes); identity when unconnected.")
+    rest = In(MeshSequence, optional=True, per_frame=False,
+              doc="One-frame rest mesh in the skull frame; default: per-vertex median of the "
+                  "initially stabilized mesh.")
+    rigid = Out(RigidSequence, doc="Skull-to-world transforms M_f (x_world = M_f @ x_skull).")
+    stabilized = Out(MeshSequence, doc="Stabilized mesh M_f^-1 mesh_f (skull frame, all vertices), cm.")
+
+    def run(self, mesh: MeshSequence, init: RigidSequence | None = None,
+            rest: MeshSequence | None = None) -> dict:
+        p = self.params
+        if mesh.num_frames < 7:
+            raise InputError("mesh", f"expected at least 7 frames (the velocity filter spans 7), "
+                                     f"found {mesh.num_frames}")
+        if p.group and p.group not in mesh.groups:
+            raise InputError("group", f"expected a vertex group '{p.group}' of the mesh, found "
+                                      f"groups {sorted(mesh.groups)}")
+        ids = np.asarray(mesh.groups[p.group], np.int64) if p.group else None
+        if ids is not None and np.unique(ids).size < 3:
+            raise InputError("group", f"expected at least 3 vertices in group '{p.group}', "
+                                      f"found {np.unique(ids).size}")
+        rest_vertices = None
+        if rest is not None:
+            if rest.num_frames != 1:
+                raise InputError("rest", f"expected a one-frame mesh, found {rest.num_frames} frames")
+            if rest.num_vertices != mesh.num_vertices:
+                raise InputError("rest", f"expected {mesh.num_vertices} vertices (as 'mesh'), "
+                                         f"found {rest.num_vertices}")
+            rest_vertices = rest.vertices[0]
+        if p.device.startswith("cuda") and not torch.cuda.is_available():
+            raise InputError("device", f"expected an available device, found '{p.device}' but CUDA "
+                                       f"is not available (use 'auto' or 'cpu')")
+        result = mode_pursuit(
+            mesh.vertices, init=None if init is None else init.matrices, rest=rest_vertices,
+            vertex_ids=ids, position_widths=p.position_widths, velocity_widths=p.velocity_widths,
+            velocity_weight=p.velocity_weight, spacing=p.spacing, refinements=p.refinements,
+            iterations=p.iterations, max_vertices=p.max_vertices, update_rest=p.update_rest,
+            device=p.device, compile=p.compile, progress=self.progress)
+        stabilized = stabilize_vertices(mesh.vertices, result.matrices)
+        return {"rigid": RigidSequence(np.ascontiguousarray(result.matrices, np.float64)),
+                "stabilized": dataclasses.replace(mesh, vertices=stabilized)}
