@@ -34,10 +34,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .files import write_text_atomic
 from .types import PortType, port_type_by_name
 
 __all__ = ["DEFAULT_CACHE", "cache_dir_from_env", "canonical_json", "make_key", "Cache",
-           "CorruptEntry", "file_sha256"]
+           "CorruptEntry"]
 
 DEFAULT_CACHE = ".nodegraph/cache"
 
@@ -55,22 +56,6 @@ def canonical_json(value: Any) -> str:
 def make_key(description: Mapping[str, Any]) -> str:
     """sha256 hex of the canonical JSON of a key description."""
     return hashlib.sha256(canonical_json(description).encode()).hexdigest()
-
-
-_FILE_HASHES: dict[tuple[str, int, int], str] = {}
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """sha256 of a file's bytes (memoized per (path, size, mtime) within the process)."""
-    st = os.stat(path)
-    memo = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
-    if memo not in _FILE_HASHES:
-        digest = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 22), b""):
-                digest.update(block)
-        _FILE_HASHES[memo] = digest.hexdigest()
-    return _FILE_HASHES[memo]
 
 
 class CorruptEntry(Exception):
@@ -276,8 +261,4 @@ def _safe(name: str) -> str:
 
 
 def _write_json_atomic(path: Path, value: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(value, fh, indent=1, sort_keys=True, default=str)
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(value, indent=1, sort_keys=True, default=str))

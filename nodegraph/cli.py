@@ -103,7 +103,7 @@ def _describe(value: PortType) -> str:
     if isinstance(value, Files):
         return ", ".join(value.paths)
     if isinstance(value, Table):
-        return "\n" + value.format()
+        return "\n" + value.format() if value.rows else "(empty table)"
     if isinstance(value, JsonValue):
         return json.dumps(value.value)
     shapes = {k: tuple(v.shape) for k, v in value.to_arrays().items() if hasattr(v, "shape") and v.ndim > 0}

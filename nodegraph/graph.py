@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Literal, NamedTuple
@@ -36,9 +35,11 @@ from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 from . import registry
 from .errors import GraphError, GraphIssue
+from .files import write_text_atomic
 from .node import Node, format_validation_error
 
-__all__ = ["SCHEMA", "PortRef", "NodeRef", "NodeSpec", "GraphParameter", "Graph", "parse_value"]
+__all__ = ["SCHEMA", "PortRef", "NodeRef", "NodeSpec", "GraphParameter", "Graph", "parse_value",
+           "write_text_atomic"]
 
 SCHEMA = "nodegraph/1"
 
@@ -464,17 +465,3 @@ def _param_issues(node_id: str, cls: type[Node], params: dict[str, Any]) -> list
     except TypeError as err:
         return [GraphIssue(node_id, "", f"invalid parameters: {err}")]
     return []
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write `text` to `path` through a temp file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise

@@ -16,7 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
-from .cache import Cache, file_sha256, make_key
+from .cache import Cache, make_key
+from .files import file_sha256
 from .errors import GraphError, GraphIssue
 from .graph import Graph
 from .node import SEQUENCE, Node, wrap_error
