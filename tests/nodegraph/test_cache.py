@@ -148,3 +148,21 @@ def test_cache_gc_and_info(cache_dir):
     assert info["entries"] == 13 and info["bytes"] > 0
     removed, _ = store.gc(0)
     assert removed == 13 and store.info()["entries"] == 0
+
+
+def test_force_recomputes_node_and_descendants(cache_dir):
+    run(chain(), chunk=CHUNK, scheduler="sync", cache=cache_dir)
+    result = run(chain(), chunk=CHUNK, scheduler="sync", cache=cache_dir, force=["avg"])
+    assert _executed(result) == {"ramp": 0, "scale": 0, "avg": 4, "cum": 1}
+
+
+def test_outputs_stop_early(cache_dir):
+    result = run(chain(), chunk=CHUNK, scheduler="sync", cache=cache_dir, outputs=["scale"])
+    assert set(result.outputs) == {"scale"} and result.executed("avg") == 0 and result.executed("cum") == 0
+
+
+def test_tty_progress_bars_do_not_change_results(cache_dir, capsys):
+    quiet = run(chain(), chunk=CHUNK, scheduler="threads", cache=False)
+    shown = run(chain(), chunk=CHUNK, scheduler="threads", cache=False, progress="tty")
+    np.testing.assert_array_equal(quiet.outputs["cum"]["total"].values, shown.outputs["cum"]["total"].values)
+    assert "avg" in capsys.readouterr().err

@@ -117,3 +117,13 @@ def test_console_script_json_progress(graph_file, cache_dir):
     events = [json.loads(line) for line in proc.stderr.splitlines() if line.startswith("{")]
     assert events[0]["event"] == "start" and events[-1]["event"] == "end"
     assert any(e["event"] == "task" and e["node"] == "avg" for e in events)
+
+
+def test_force_and_to_options(graph_file, cache_dir, capsys):
+    args = ["run", str(graph_file), "--cache", str(cache_dir), "--chunk", "5", "--progress", "none"]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args + ["--to", "scale", "--force", "scale"]) == 0
+    out = capsys.readouterr()
+    assert "scale.scaled" in out.out and "cum.total" not in out.out
+    assert "4 executed" in out.out + out.err
