@@ -27,8 +27,8 @@ from nodegraph import Files, InputError
 
 __all__ = [
     "FrameToken", "frame_token", "is_frame_pattern", "expand_frame_pattern", "find_frame_numbers",
-    "pattern_files", "atomic_path", "sha256_file", "files_value", "format_of", "npz_keys",
-    "npz_shape", "read_npz_rows", "read_npz_array",
+    "pattern_files", "frame_where", "check_frame_range", "atomic_path", "sha256_file", "files_value",
+    "format_of", "npz_keys", "npz_shape", "read_npz_rows", "read_npz_array",
 ]
 
 _TOKEN = re.compile(r"%(0?)(\d*)d|(#+)|\{frame(?::0?(\d+)d)?\}")
@@ -129,6 +129,19 @@ def pattern_files(pattern: str) -> list[Path]:
     return [Path(expand_frame_pattern(pattern, n)) for n in find_frame_numbers(pattern)]
 
 
+def frame_where(frame: int, file: str | os.PathLike) -> str:
+    """Return `frame F (file 'PATH')`, how load errors name the place of a bad frame."""
+    return f"frame {frame} (file '{os.fspath(file)}')"
+
+
+def check_frame_range(frames: range, count: int, path: str) -> None:
+    """Raise InputError (param "path") when `frames` reach outside the `count` frames of `path`."""
+    if len(frames) and (frames.start < 0 or frames[-1] >= count):
+        bad = frames.start if frames.start < 0 else frames[-1]
+        raise InputError("path", f"frame {bad} (file '{path}'): expected a frame in 0..{count - 1}, "
+                                 f"the file has {count} frame(s)")
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to `path`; on success move it onto `path` (os.replace).
@@ -154,7 +167,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def sha256_file(path: str | os.PathLike, block: int = 1 << 20) -> str:
-    """Return the sha256 (hex) of a file's bytes."""
+    """Return the sha256 (hex) of a file's bytes, read now.
+
+    Not `nodegraph.files.file_sha256`, which memoizes per (path, size, mtime): a saver may
+    rewrite a file with the same size within one mtime tick, and must hash what it wrote.
+    """
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(block), b""):

@@ -59,13 +59,15 @@ def triangulate_polygons(polygons: np.ndarray) -> np.ndarray:
     return pairs[keep].astype(np.int32)
 
 
-def farthest_point_sampling(points: np.ndarray, count: int, *, seed: int = 0) -> np.ndarray:
+def farthest_point_sampling(points: np.ndarray, count: int, *, seed: int = 0,
+                            first: int | None = None) -> np.ndarray:
     """Pick `count` well-spread points greedily (each new point is the farthest from those picked).
 
     Args:
         points: (N, 3) float positions.
         count: number to pick; `count >= N` returns every index.
-        seed: chooses the first point (deterministic for a given seed).
+        seed: chooses the first point (deterministic for a given seed) when `first` is None.
+        first: index of the first point; None = drawn from `seed`. Ties pick the lowest index.
     Returns:
         (min(count, N),) int64 indices, sorted ascending.
 
@@ -78,8 +80,10 @@ def farthest_point_sampling(points: np.ndarray, count: int, *, seed: int = 0) ->
         return np.arange(n)
     if count <= 0:
         return np.zeros((0,), np.int64)
+    if first is not None and not 0 <= first < n:
+        raise ValueError(f"first: expected an index in 0..{n - 1}, found {first}")
     chosen = np.empty(count, np.int64)
-    chosen[0] = np.random.default_rng(seed).integers(n)
+    chosen[0] = np.random.default_rng(seed).integers(n) if first is None else first
     columns = np.ascontiguousarray(points.T)  # (3, N): contiguous rows make the loop fast
     dist = np.full(n, np.inf)
     step, scratch = np.empty(n), np.empty(n)

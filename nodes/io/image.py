@@ -18,7 +18,7 @@ import numpy as np
 from nodegraph import FRAMEWISE, Files, ImageSequence, In, InputError, Node, NodeParams, Out, Param
 
 from ._files import (atomic_path, expand_frame_pattern, files_value, find_frame_numbers, format_of,
-                     frame_token, pattern_files)
+                     frame_token, frame_where, pattern_files)
 
 __all__ = ["IMAGE_WRITE_FORMATS", "read_image", "write_image", "image_frame_count",
            "load_image_sequence", "save_image_sequence", "LoadImageSequence", "SaveImageSequence"]
@@ -137,10 +137,6 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, channels: list[str]
         out.close()
 
 
-def _where(frame: int, file: str) -> str:
-    return f"frame {frame} (file '{file}')"
-
-
 def _check_pattern(path: str) -> None:
     if frame_token(path) is None:
         raise InputError("path", f"expected a numbered pattern such as 'img.%04d.exr', found '{path}'")
@@ -179,12 +175,12 @@ def load_image_sequence(path: str, frames: range, *, first_frame: int | None = N
     def file_of(frame: int) -> str:
         file = expand_frame_pattern(path, first + frame)
         if not os.path.isfile(file):
-            raise InputError("path", f"{_where(frame, file)}: expected the file of this frame, "
+            raise InputError("path", f"{frame_where(frame, file)}: expected the file of this frame, "
                                      "found it missing")
         return file
 
     def unreadable(frame: int, file: str, err: Exception) -> InputError:
-        return InputError("path", f"{_where(frame, file)}: expected a readable image, found an "
+        return InputError("path", f"{frame_where(frame, file)}: expected a readable image, found an "
                                   f"unreadable or truncated file ({str(err).strip()})")
 
     ref_file = file_of(0)
@@ -200,7 +196,7 @@ def load_image_sequence(path: str, frames: range, *, first_frame: int | None = N
         except ValueError as err:
             raise unreadable(f, file, err) from err
         if image.shape != pixels.shape[1:] or names != channels:
-            raise InputError("path", f"{_where(f, file)}: expected {width}x{height} pixels with "
+            raise InputError("path", f"{frame_where(f, file)}: expected {width}x{height} pixels with "
                                      f"channels {channels} as in frame 0 ('{ref_file}'), found "
                                      f"{image.shape[1]}x{image.shape[0]} with channels {names}")
         pixels[i] = image

@@ -9,12 +9,8 @@ Formats, by extension:
   MeshSequence needs the file's vertex order and its uv seams. Polygons are fan-triangulated.
 - `.npz`: `vertices (F, V, 3)`, `faces`, optional `uv`, `uv_faces`, `groups/<name>`, `fps`.
   A chunk reads only its rows (memory-mapped when stored uncompressed, as the saver does).
-- `.usd` / `.usda` / `.usdc`: a UsdGeom.Mesh with time-sampled `points` (frame `f` is the
-  f-th time sample; the saver writes time code = run frame), `faceVertexCounts` /
-  `faceVertexIndices`, uv as primvar `st` (faceVarying and indexed when the mesh has
-  `uv_faces`, vertex otherwise), vertex groups as GeomSubsets of element type `point` (family
-  `vertexGroups`), `timeCodesPerSecond` = fps, `metersPerUnit` = 0.01. Points are read in
-  world space (the prim's local-to-world transform is applied) and scaled to cm.
+- `.usd` / `.usda` / `.usdc`: a UsdGeom.Mesh with time-sampled `points` (read and written by
+  `nodes.io.usd`, see there).
 
 Every load error names the file and the run frame.
 """
@@ -33,8 +29,9 @@ import numpy as np
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams,
                        Out, Param)
 
-from ._files import (atomic_path, expand_frame_pattern, files_value, find_frame_numbers, format_of,
-                     frame_token, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
+from ._files import (atomic_path, check_frame_range, expand_frame_pattern, files_value, find_frame_numbers,
+                     format_of, frame_token, frame_where, npz_keys, npz_shape, pattern_files, read_npz_array,
+                     read_npz_rows)
 
 __all__ = [
     "MeshFrame", "fan_triangulate", "read_obj", "write_obj", "read_ply", "write_ply",
@@ -45,8 +42,6 @@ __all__ = [
 MESH_FORMATS = {".obj": "obj", ".ply": "ply", ".npz": "npz", ".usd": "usd", ".usda": "usd",
                 ".usdc": "usd"}
 _PER_FRAME_FORMATS = ("obj", "ply")
-_GROUP_FAMILY = "vertexGroups"
-_GROUP_NAME_KEY = "nodegraph:groupName"
 
 
 class MeshFrame(NamedTuple):
@@ -239,26 +234,22 @@ def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
 
 # -- helpers --------------------------------------------------------------------------------
 
-def _where(frame: int, file: str | os.PathLike) -> str:
-    return f"frame {frame} (file '{os.fspath(file)}')"
-
-
 def _check_frame(frame: int, file: str, vertices: np.ndarray, faces: np.ndarray,
                  ref: MeshFrame | None, ref_file: str) -> None:
     """Raise InputError when a frame's vertices are not finite or its topology differs."""
     if ref is not None:
         if vertices.shape[0] != ref.vertices.shape[0]:
-            raise InputError("path", f"{_where(frame, file)}: expected {ref.vertices.shape[0]} "
+            raise InputError("path", f"{frame_where(frame, file)}: expected {ref.vertices.shape[0]} "
                                      f"vertices as in frame 0 ('{ref_file}'), found {vertices.shape[0]}")
         if faces is not None and not np.array_equal(faces, ref.faces):
             detail = (f"{len(faces)} faces vs {len(ref.faces)}" if faces.shape != ref.faces.shape else
                       f"first different face {int(np.argmax((faces != ref.faces).any(axis=1)))}")
-            raise InputError("path", f"{_where(frame, file)}: expected the faces of frame 0 "
+            raise InputError("path", f"{frame_where(frame, file)}: expected the faces of frame 0 "
                                      f"('{ref_file}'), found different topology ({detail})")
     bad = ~np.isfinite(vertices)
     if bad.any():
         vertex = int(np.argwhere(bad)[0][0])
-        raise InputError("path", f"{_where(frame, file)}: expected finite vertices, found "
+        raise InputError("path", f"{frame_where(frame, file)}: expected finite vertices, found "
                                  f"NaN/inf at vertex {vertex}")
 
 
@@ -276,23 +267,16 @@ def _no_files(path: str) -> InputError:
                               f"'{folder or '.'}'")
 
 
-def _check_range(frames: range, count: int, path: str) -> None:
-    if len(frames) and (frames.start < 0 or frames[-1] >= count):
-        bad = frames.start if frames.start < 0 else frames[-1]
-        raise InputError("path", f"frame {bad} (file '{path}'): expected a frame in 0..{count - 1}, "
-                                 f"the file has {count} frame(s)")
-
-
 # -- numbered files ------------------------------------------------------------------------
 
 def _read_mesh_file(path: str, fmt: str, frame: int) -> MeshFrame:
     if not os.path.isfile(path):
-        raise InputError("path", f"{_where(frame, path)}: expected the file of this frame, "
+        raise InputError("path", f"{frame_where(frame, path)}: expected the file of this frame, "
                                  "found it missing")
     try:
         return read_obj(path) if fmt == "obj" else read_ply(path)
     except (ValueError, OSError, UnicodeDecodeError, IndexError, KeyError, TypeError) as err:
-        raise InputError("path", f"{_where(frame, path)}: expected a readable {fmt.upper()} mesh, "
+        raise InputError("path", f"{frame_where(frame, path)}: expected a readable {fmt.upper()} mesh, "
                                  f"found an unreadable or truncated file ({err})") from err
 
 
@@ -325,7 +309,7 @@ def _load_npz(path: str, frames: range, fps: float) -> MeshSequence:
         if len(shape) != 3 or shape[2] != 3:
             raise InputError("path", f"file '{path}': expected 'vertices' of shape (F, V, 3), "
                                      f"found {shape}")
-        _check_range(frames, shape[0], path)
+        check_frame_range(frames, shape[0], path)
         vertices = read_npz_rows(path, "vertices", frames.start, frames.stop) if len(frames) else \
             np.zeros((0, shape[1], 3), np.float32)
         faces = read_npz_array(path, "faces") if "faces" in keys else np.zeros((0, 3), np.int32)
@@ -343,7 +327,7 @@ def _load_npz(path: str, frames: range, fps: float) -> MeshSequence:
     bad = ~np.isfinite(vertices)
     if bad.any():
         i, v = (int(x) for x in np.argwhere(bad)[0][:2])
-        raise InputError("path", f"{_where(frames[i], path)}: expected finite vertices, found "
+        raise InputError("path", f"{frame_where(frames[i], path)}: expected finite vertices, found "
                                  f"NaN/inf at vertex {v}")
     return MeshSequence(vertices=vertices, faces=faces, uv=uv, uv_faces=uv_faces, groups=groups,
                         fps=fps)
@@ -361,182 +345,6 @@ def _save_npz(path: str, mesh: MeshSequence, compress: bool) -> None:
         arrays[f"groups/{name}"] = np.asarray(idx)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         (np.savez_compressed if compress else np.savez)(fh, **arrays)
-
-
-# -- USD ------------------------------------------------------------------------------------
-
-def _usd_error(err: Exception) -> str:
-    lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
-    return lines[-1] if lines else type(err).__name__
-
-
-def _open_usd_mesh(path: str, prim: str):
-    from pxr import Tf, Usd, UsdGeom
-
-    if not os.path.isfile(path):
-        raise InputError("path", f"file '{path}': expected a USD file, found it missing")
-    try:
-        stage = Usd.Stage.Open(path)
-    except Tf.ErrorException as err:
-        raise InputError("path", f"file '{path}': expected a readable USD stage, found an unreadable "
-                                 f"or truncated file ({_usd_error(err)})") from err
-    if prim:
-        found = stage.GetPrimAtPath(prim) if prim.startswith("/") else None
-        if not found or not found.IsA(UsdGeom.Mesh):
-            raise InputError("prim", f"file '{path}': expected a UsdGeom.Mesh at '{prim}', found "
-                                     f"{found.GetTypeName() or 'an untyped prim' if found else 'none'}")
-    else:
-        found = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
-        if found is None:
-            raise InputError("path", f"file '{path}': expected a UsdGeom.Mesh prim, found none")
-    return stage, UsdGeom.Mesh(found)
-
-
-def _usd_times(mesh) -> list[float]:
-    from pxr import Usd
-
-    times = list(mesh.GetPointsAttr().GetTimeSamples())
-    return times if times else [Usd.TimeCode.Default()]
-
-
-def _usd_topology(mesh, time) -> tuple[np.ndarray, np.ndarray]:
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
-    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
-    if counts.sum() != indices.size:
-        raise ValueError(f"faceVertexCounts sum to {int(counts.sum())}, faceVertexIndices has "
-                         f"{indices.size}")
-    corners = fan_triangulate(counts)
-    return indices[corners].astype(np.int32), corners
-
-
-def _usd_points(mesh, time, scale: float) -> np.ndarray:
-    from pxr import UsdGeom
-
-    points = np.asarray(mesh.GetPointsAttr().Get(time), dtype=np.float64).reshape(-1, 3)
-    xf = np.asarray(UsdGeom.Xformable(mesh.GetPrim()).ComputeLocalToWorldTransform(time))
-    if not np.array_equal(xf, np.eye(4)):
-        points = points @ xf[:3, :3] + xf[3, :3]  # USD matrices act on row vectors
-    return (points * scale).astype(np.float32)
-
-
-def _usd_uv(mesh, corners: np.ndarray, nv: int) -> tuple[np.ndarray | None, np.ndarray | None]:
-    from pxr import UsdGeom
-
-    primvar = UsdGeom.PrimvarsAPI(mesh.GetPrim()).GetPrimvar("st")
-    if not primvar or not primvar.HasValue():
-        return None, None
-    values = np.asarray(primvar.Get(), dtype=np.float32).reshape(-1, 2)
-    interp = primvar.GetInterpolation()
-    if interp in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
-        flat = np.asarray(primvar.ComputeFlattened(), dtype=np.float32).reshape(-1, 2)
-        if len(flat) != nv:
-            raise ValueError(f"primvar 'st' ({interp}) has {len(flat)} values for {nv} points")
-        return flat, None
-    if interp == UsdGeom.Tokens.faceVarying:
-        indices = primvar.GetIndices() if primvar.IsIndexed() else None
-        corner_uv = np.asarray(indices, np.int64) if indices is not None else np.arange(len(values))
-        return values, corner_uv[corners].astype(np.int32)
-    return None, None  # constant/uniform uv cannot be expressed by a MeshSequence
-
-
-def _usd_groups(mesh) -> dict[str, np.ndarray]:
-    from pxr import UsdGeom
-
-    groups = {}
-    for subset in UsdGeom.Subset.GetAllGeomSubsets(mesh):
-        if subset.GetElementTypeAttr().Get() != UsdGeom.Tokens.point:
-            continue
-        prim = subset.GetPrim()
-        name = prim.GetCustomDataByKey(_GROUP_NAME_KEY) or prim.GetName()
-        groups[str(name)] = np.asarray(subset.GetIndicesAttr().Get() or [], dtype=np.int64)
-    return groups
-
-
-def _usd_frame_count(path: str, prim: str) -> int:
-    _, mesh = _open_usd_mesh(path, prim)
-    return len(_usd_times(mesh))
-
-
-def _load_usd(path: str, frames: range, prim: str, fps: float) -> MeshSequence:
-    from pxr import UsdGeom
-
-    stage, mesh = _open_usd_mesh(path, prim)
-    times = _usd_times(mesh)
-    _check_range(frames, len(times), path)
-    scale = UsdGeom.GetStageMetersPerUnit(stage) / 0.01
-    if stage.HasAuthoredMetadata("timeCodesPerSecond"):
-        fps = float(stage.GetTimeCodesPerSecond())
-    where = f"file '{path}', prim '{mesh.GetPath()}'"
-    try:
-        faces, corners = _usd_topology(mesh, times[0])
-        ref = MeshFrame(_usd_points(mesh, times[0], scale), faces)
-        varying = (mesh.GetFaceVertexIndicesAttr().GetNumTimeSamples() > 1
-                   or mesh.GetFaceVertexCountsAttr().GetNumTimeSamples() > 1)
-        uv, uv_faces = _usd_uv(mesh, corners, len(ref.vertices))
-    except (ValueError, TypeError) as err:
-        raise InputError("path", f"frame 0 ({where}): expected a valid mesh, found {err}") from err
-    out = np.empty((len(frames), len(ref.vertices), 3), np.float32)
-    for i, f in enumerate(frames):
-        vertices = ref.vertices if f == 0 else _usd_points(mesh, times[f], scale)
-        try:
-            frame_faces = _usd_topology(mesh, times[f])[0] if varying and f else None
-        except ValueError as err:
-            raise InputError("path", f"frame {f} ({where}): expected a valid mesh, found {err}") from err
-        _check_frame(f, path, vertices, frame_faces, ref if f else None, path)
-        out[i] = vertices
-    return MeshSequence(vertices=out, faces=faces, uv=uv, uv_faces=uv_faces,
-                        groups=_usd_groups(mesh), fps=fps)
-
-
-def _save_usd(path: str, mesh: MeshSequence, times: range, prim: str) -> None:
-    from pxr import Sdf, Tf, Usd, UsdGeom, Vt
-
-    if not (Sdf.Path.IsValidPathString(prim) and Sdf.Path(prim).IsAbsolutePath()
-            and Sdf.Path(prim).IsPrimPath()):
-        raise InputError("prim", f"expected an absolute prim path such as '/mesh', found '{prim}'")
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    stage.SetTimeCodesPerSecond(float(mesh.fps))
-    stage.SetFramesPerSecond(float(mesh.fps))
-    if len(times):
-        stage.SetStartTimeCode(times[0])
-        stage.SetEndTimeCode(times[-1])
-    geom = UsdGeom.Mesh.Define(stage, prim)
-    stage.SetDefaultPrim(stage.GetPrimAtPath(Sdf.Path(prim).GetPrefixes()[0]))
-    faces = np.asarray(mesh.faces, np.int32)
-    geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
-    geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
-    geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    points, extent = geom.CreatePointsAttr(), geom.CreateExtentAttr()
-    vertices = np.asarray(mesh.vertices, np.float32)
-    for i, t in enumerate(times):
-        points.Set(Vt.Vec3fArray.FromNumpy(vertices[i]), t)
-        if vertices.shape[1]:
-            box = np.stack([vertices[i].min(axis=0), vertices[i].max(axis=0)])
-            extent.Set(Vt.Vec3fArray.FromNumpy(box), t)
-    if mesh.uv is not None:
-        interp = UsdGeom.Tokens.vertex if mesh.uv_faces is None else UsdGeom.Tokens.faceVarying
-        primvar = UsdGeom.PrimvarsAPI(geom.GetPrim()).CreatePrimvar(
-            "st", Sdf.ValueTypeNames.TexCoord2fArray, interp)
-        primvar.Set(Vt.Vec2fArray.FromNumpy(np.asarray(mesh.uv, np.float32)))
-        if mesh.uv_faces is not None:
-            primvar.SetIndices(Vt.IntArray.FromNumpy(np.asarray(mesh.uv_faces, np.int32).reshape(-1)))
-    used: set[str] = set()
-    for name, idx in mesh.groups.items():
-        child = Tf.MakeValidIdentifier(name)
-        while child in used:
-            child += "_"
-        used.add(child)
-        subset = UsdGeom.Subset.Define(stage, geom.GetPath().AppendChild(child))
-        subset.CreateElementTypeAttr(UsdGeom.Tokens.point)
-        subset.CreateFamilyNameAttr(_GROUP_FAMILY)
-        subset.CreateIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(idx, np.int32)))
-        if child != name:
-            subset.GetPrim().SetCustomDataByKey(_GROUP_NAME_KEY, name)
-    with atomic_path(path) as tmp:
-        if not stage.GetRootLayer().Export(os.fspath(tmp)):
-            raise OSError(f"could not write USD file '{path}'")
 
 
 # -- public entry points -------------------------------------------------------------------
@@ -559,7 +367,8 @@ def mesh_frame_count(path: str, *, prim: str = "", first_frame: int | None = Non
         except (KeyError, ValueError, OSError, IndexError, zipfile.BadZipFile):
             return 0
     if fmt == "usd":
-        return _usd_frame_count(path, prim)
+        from .usd import usd_mesh_frame_count  # imports mesh at its top: import here, not there
+        return usd_mesh_frame_count(path, prim)
     raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
                              f"{fmt.upper()} files, found a single file name")
 
@@ -592,7 +401,8 @@ def load_mesh_sequence(path: str, frames: range, *, prim: str = "", first_frame:
             raise InputError("path", f"file '{path}': expected an .npz file, found it missing")
         return _load_npz(path, frames, fps)
     if fmt == "usd":
-        return _load_usd(path, frames, prim, fps)
+        from .usd import load_usd_mesh
+        return load_usd_mesh(path, frames, prim, fps)
     raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
                              f"{fmt.upper()} files, found a single file name")
 
@@ -624,7 +434,8 @@ def save_mesh_sequence(path: str, mesh: MeshSequence, frames: range, *, first_fr
         if fmt == "npz":
             _save_npz(path, mesh, compress)
         else:
-            _save_usd(path, mesh, frames, prim)
+            from .usd import save_usd_mesh
+            save_usd_mesh(path, mesh, frames, prim)
         return [path]
     if fmt == "ply" and mesh.uv_faces is not None:
         raise InputError("mesh", f"'{path}': PLY stores per-vertex uv only, found face-varying uv "

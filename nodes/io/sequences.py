@@ -21,15 +21,15 @@ import os
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param,
                        ParamSequence, RigidSequence)
 
-from ._files import (atomic_path, files_value, format_of, npz_keys, npz_shape, read_npz_array,
-                     read_npz_rows)
+from ._files import (atomic_path, check_frame_range, files_value, format_of, frame_where, npz_keys, npz_shape,
+                     read_npz_array, read_npz_rows)
 
 __all__ = [
     "CONVENTION", "load_rigid_sequence", "save_rigid_sequence", "load_param_sequence",
@@ -43,10 +43,6 @@ CONVENTION = "skull_to_world"
 SEQUENCE_FORMATS = {".json": "json", ".npz": "npz"}
 _RIGID_KEYS = ("matrices", "rigid")
 _ORTHO_TOL = 1e-3
-
-
-def _where(frame: int, path: str) -> str:
-    return f"frame {frame} (file '{path}')"
 
 
 def _unreadable(path: str, what: str, err: Exception) -> InputError:
@@ -86,25 +82,18 @@ def _frame_array(rows: list, frames: range, path: str, key: str, tail: tuple[int
         try:
             value = np.asarray(row, dtype=np.float64)
         except (ValueError, TypeError) as err:
-            raise InputError("path", f"{_where(frame, path)}: expected '{key}' numbers of shape "
+            raise InputError("path", f"{frame_where(frame, path)}: expected '{key}' numbers of shape "
                                      f"{tail}, found {str(row)[:60]}") from err
         if value.shape != tail:
-            raise InputError("path", f"{_where(frame, path)}: expected '{key}' of shape {tail}, "
+            raise InputError("path", f"{frame_where(frame, path)}: expected '{key}' of shape {tail}, "
                                      f"found {value.shape}")
     return np.asarray(rows, dtype=np.float64).reshape(len(rows), *tail).astype(dtype)
-
-
-def _check_range(frames: range, count: int, path: str) -> None:
-    if len(frames) and (frames.start < 0 or frames[-1] >= count):
-        bad = frames.start if frames.start < 0 else frames[-1]
-        raise InputError("path", f"frame {bad} (file '{path}'): expected a frame in 0..{count - 1}, "
-                                 f"the file has {count} frame(s)")
 
 
 def _check_finite(values: np.ndarray, frames: range, path: str) -> None:
     bad = ~np.isfinite(values.reshape(len(values), -1)).all(axis=1)
     if bad.any():
-        raise InputError("path", f"{_where(frames[int(np.argmax(bad))], path)}: expected finite "
+        raise InputError("path", f"{frame_where(frames[int(np.argmax(bad))], path)}: expected finite "
                                  "values, found NaN/inf")
 
 
@@ -128,7 +117,7 @@ def _npz_rows(path: str, key: str, frames: range, tail: tuple[int, ...], what: s
         if tuple(shape[1:]) != tail or len(shape) != len(tail) + 1:
             raise InputError("path", f"file '{path}': expected '{key}' of shape (F, "
                                      f"{', '.join(map(str, tail))}), found {tuple(shape)}")
-        _check_range(frames, shape[0], path)
+        check_frame_range(frames, shape[0], path)
         return read_npz_rows(path, key, frames.start, frames.stop) if len(frames) else \
             np.zeros((0, *tail))
     except InputError:
@@ -158,7 +147,7 @@ def _check_rigid(matrices: np.ndarray, frames: range, path: str) -> None:
     bad = (ortho > _ORTHO_TOL) | (bottom > 1e-6) | (np.linalg.det(rot) < 0)
     if bad.any():
         i = int(np.argmax(bad))
-        raise InputError("path", f"{_where(frames[i], path)}: expected a rigid matrix (rotation "
+        raise InputError("path", f"{frame_where(frames[i], path)}: expected a rigid matrix (rotation "
                                  f"block orthonormal with det +1, bottom row [0, 0, 0, 1]), found "
                                  f"max |R R^T - I| = {ortho[i]:.2e}, det R = "
                                  f"{np.linalg.det(rot[i]):.3f}, bottom row {matrices[i, 3].tolist()}")
@@ -189,7 +178,7 @@ def load_rigid_sequence(path: str, frames: range | None = None) -> RigidSequence
                                      f"{sorted(data)}")
         rows = _json_rows(data, "matrices", path)
         frames = range(len(rows)) if frames is None else frames
-        _check_range(frames, len(rows), path)
+        check_frame_range(frames, len(rows), path)
         matrices = _frame_array(rows, frames, path, "matrices", (4, 4), np.float64)
     else:
         key = _npz_member(path, _RIGID_KEYS, what)
@@ -244,7 +233,7 @@ def load_param_sequence(path: str, frames: range | None = None) -> ParamSequence
                                      f"keys {sorted(data)}")
         rows = _json_rows(data, "values", path)
         frames = range(len(rows)) if frames is None else frames
-        _check_range(frames, len(rows), path)
+        check_frame_range(frames, len(rows), path)
         first_row = rows[0] if rows else []
         names = _names(data["names"], len(first_row) if isinstance(first_row, list) else -1, path)
         values = _frame_array(rows, frames, path, "values", (len(names),), np.float32)
@@ -305,80 +294,82 @@ class _SaveParams(NodeParams):
     path: str = Param(..., description="Destination .json or .npz file.")
 
 
-class LoadRigidSequence(Node):
-    """Read skull-to-world rigid transforms (JSON or NPZ)."""
+class _SequenceLoader(Node):
+    """What the rigid and parameter loaders share: one input file, its frame count, chunked reads.
 
-    type_name = "io.LoadRigidSequence"
-    version = 1
+    A subclass sets `load` (path, frames -> sequence) and declares its output port and `run`.
+    """
+
     kind = FRAMEWISE
     Params = _LoadParams
-
-    rigid = Out(RigidSequence, doc="Skull-to-world matrices (F, 4, 4) float64, cm.")
+    load: Callable[[str, range | None], Any]
 
     def frame_count(self) -> int | None:
         count = sequence_frame_count(self.params.path)
         if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
-            load_rigid_sequence(self.params.path, range(0, 1))
+            self.load(self.params.path, range(0, 1))
         return count
 
     def input_files(self) -> list[Path]:
         return [Path(self.params.path)] if os.path.isfile(self.params.path) else []
 
-    def run(self) -> dict[str, RigidSequence]:
-        return {"rigid": load_rigid_sequence(self.params.path, self.frames)}
 
+class _SequenceSaver(Node):
+    """What the rigid and parameter savers share: one output file, written whole, not cached."""
 
-class SaveRigidSequence(Node):
-    """Write skull-to-world rigid transforms as JSON or NPZ."""
-
-    type_name = "io.SaveRigidSequence"
-    version = 1
     kind = SEQUENCE
     cacheable = False
     Params = _SaveParams
 
-    rigid = In(RigidSequence, doc="Skull-to-world matrices to write.")
     files = Out(Files, doc="The written file and its sha256.")
+
+
+class LoadRigidSequence(_SequenceLoader):
+    """Read skull-to-world rigid transforms (JSON or NPZ)."""
+
+    type_name = "io.LoadRigidSequence"
+    version = 1
+    load = staticmethod(load_rigid_sequence)
+
+    rigid = Out(RigidSequence, doc="Skull-to-world matrices (F, 4, 4) float64, cm.")
+
+    def run(self) -> dict[str, RigidSequence]:
+        return {"rigid": self.load(self.params.path, self.frames)}
+
+
+class SaveRigidSequence(_SequenceSaver):
+    """Write skull-to-world rigid transforms as JSON or NPZ."""
+
+    type_name = "io.SaveRigidSequence"
+    version = 1
+
+    rigid = In(RigidSequence, doc="Skull-to-world matrices to write.")
 
     def run(self, rigid: RigidSequence) -> dict[str, Files]:
         save_rigid_sequence(self.params.path, rigid)
         return {"files": files_value([self.params.path])}
 
 
-class LoadParamSequence(Node):
+class LoadParamSequence(_SequenceLoader):
     """Read named parameter curves (JSON or NPZ)."""
 
     type_name = "io.LoadParamSequence"
     version = 1
-    kind = FRAMEWISE
-    Params = _LoadParams
+    load = staticmethod(load_param_sequence)
 
     params = Out(ParamSequence, doc="Values (F, K) float32 with K names.")
 
-    def frame_count(self) -> int | None:
-        count = sequence_frame_count(self.params.path)
-        if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
-            load_param_sequence(self.params.path, range(0, 1))
-        return count
-
-    def input_files(self) -> list[Path]:
-        return [Path(self.params.path)] if os.path.isfile(self.params.path) else []
-
     def run(self) -> dict[str, ParamSequence]:
-        return {"params": load_param_sequence(self.params.path, self.frames)}
+        return {"params": self.load(self.params.path, self.frames)}
 
 
-class SaveParamSequence(Node):
+class SaveParamSequence(_SequenceSaver):
     """Write named parameter curves as JSON or NPZ."""
 
     type_name = "io.SaveParamSequence"
     version = 1
-    kind = SEQUENCE
-    cacheable = False
-    Params = _SaveParams
 
     params = In(ParamSequence, doc="Parameter curves to write.")
-    files = Out(Files, doc="The written file and its sha256.")
 
     def run(self, params: ParamSequence) -> dict[str, Files]:
         save_param_sequence(self.params.path, params)

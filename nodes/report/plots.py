@@ -11,7 +11,6 @@ written atomically: a temporary name in the same folder, then `os.replace`.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -24,10 +23,13 @@ from scipy.spatial.transform import Rotation
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 
+from ..io._files import files_value
+from ..rigid.kabsch import apply_rigid, invert_rigid
+
 __all__ = [
-    "rigid_to_euler_translation", "invert_rigid", "stabilize_points", "default_vertices",
+    "rigid_to_euler_translation", "stabilize_points", "default_vertices",
     "PositionSpread", "position_spread", "plot_head_motion", "plot_position_histograms",
-    "save_figure", "file_sha256", "CaptureReport",
+    "save_figure", "CaptureReport",
 ]
 
 _AXES = ("x", "y", "z")
@@ -50,22 +52,6 @@ def rigid_to_euler_translation(matrices: np.ndarray) -> tuple[np.ndarray, np.nda
     return angles, matrices[:, :3, 3].copy()
 
 
-def invert_rigid(matrices: np.ndarray) -> np.ndarray:
-    """Invert rigid 4x4 transforms: [R, t]^-1 = [R^T, -R^T t].
-
-    Args:
-        matrices: (..., 4, 4) float64 rigid transforms.
-    Returns:
-        (..., 4, 4) float64.
-    """
-    rot_t = np.swapaxes(matrices[..., :3, :3], -1, -2)
-    out = np.zeros_like(matrices, dtype=np.float64)
-    out[..., :3, :3] = rot_t
-    out[..., :3, 3] = -(rot_t @ matrices[..., :3, 3, None])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def stabilize_points(matrices: np.ndarray, world: np.ndarray) -> np.ndarray:
     """Bring world points into the skull frame: `x_skull = M_f^-1 x_world`.
 
@@ -75,9 +61,7 @@ def stabilize_points(matrices: np.ndarray, world: np.ndarray) -> np.ndarray:
     Returns:
         (F, V, 3) float32 cm, skull frame.
     """
-    inverse = invert_rigid(np.asarray(matrices, np.float64))
-    out = np.einsum("fij,fvj->fvi", inverse[:, :3, :3], world.astype(np.float64))
-    return (out + inverse[:, None, :3, 3]).astype(np.float32)
+    return apply_rigid(invert_rigid(matrices), world).astype(np.float32)
 
 
 def default_vertices(count_vertices: int, count: int = 4) -> np.ndarray:
@@ -153,15 +137,6 @@ def save_figure(fig: Figure, path: str | os.PathLike) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """Hex sha256 of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,
@@ -276,4 +251,4 @@ class CaptureReport(Node):
         self.progress(0.5, "histograms")
         paths.append(plot_position_histograms(capture.vertices, {"skull": skull},
                                               folder / "histograms.png", vertices))
-        return {"files": Files(paths=[str(p) for p in paths], sha256=[file_sha256(p) for p in paths])}
+        return {"files": files_value(paths)}

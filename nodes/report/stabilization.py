@@ -11,7 +11,8 @@ from nodegraph import RigidSequence, Table
 from nodegraph.graph import write_text_atomic
 
 from .metrics import StabilizationErrors, stabilization_errors
-from .plots import file_sha256, plot_head_motion, plot_position_histograms, stabilize_points
+from ..io._files import files_value
+from .plots import plot_head_motion, plot_position_histograms, stabilize_points
 
 __all__ = ["error_table", "StabilizationReport"]
 
@@ -105,4 +106,4 @@ class StabilizationReport(Node):
         skulls = {label: stabilize_points(m, capture.vertices) for label, m in curves.items()}
         written.append(plot_position_histograms(capture.vertices, skulls, folder / "histograms.png", ids))
         paths = [str(p) for p in written]
-        return {"files": Files(paths, [file_sha256(p) for p in paths]), "table": table}
+        return {"files": files_value(paths), "table": table}

@@ -8,8 +8,9 @@ from .dualquat import (dualquat_align_hemisphere, dualquat_blend, dualquat_conju
                        dualquat_to_rotation_translation, dualquat_to_rotmat_translation,
                        dualquat_transform_points, quat_conjugate, quat_multiply, quat_to_rotmat,
                        rotmat_to_quat)
+from .lbfgs import lbfgs
 from .mode_pursuit import (DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, ModePursuitResult, Stage,
-                           farthest_point_sampling, fused_stabilization_energy, invert_rigid, lbfgs,
+                           farthest_point_sampling, fused_stabilization_energy, invert_rigid,
                            make_schedule, mode_pursuit, stabilization_energy, stabilize_vertices)
 from .node import ModePursuit, ModePursuitParams  # importing registers stabilize.ModePursuit
 from .penalty import (VELOCITY_COEFFS, central_velocity, central_velocity_adjoint, psi, psi_derivative,

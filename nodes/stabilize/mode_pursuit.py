@@ -43,7 +43,7 @@ Implementation notes (what makes it fast):
   - The energy uses at most `max_vertices` vertices (default 2000), chosen by farthest-point
     sampling on the first frame (spread is rigid-invariant; deterministic); the result is
     applied to every vertex afterwards, in blocks of frames.
-  - L-BFGS is our own (`lbfgs`, same algorithm as `torch.optim.LBFGS`): constructing a
+  - L-BFGS is our own (`lbfgs.py`, same algorithm as `torch.optim.LBFGS`): constructing a
     torch optimizer imports `torch._dynamo` (about 2 s per process).
 
 Conventions: cm, frames; `matrices[f]` is skull-to-world (`x_world = M_f x_skull`), so
@@ -61,16 +61,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..io.face_model import farthest_point_sampling as _farthest_point_sampling_np
+from ..rigid.kabsch import apply_rigid, invert_rigid as _invert_rigid_np
 from .bspline import SplineBasis, evaluate_spline, fit_control_points, frame_basis, num_control_points, refine_midpoint
 from .dualquat import (dualquat_align_hemisphere, dualquat_from_rotation_translation,
                        dualquat_identity, dualquat_normalize, dualquat_to_rotmat_translation,
                        rotmat_to_quat)
+from .lbfgs import lbfgs
 from .penalty import REDUCED_END_COEFFS, VELOCITY_COEFFS, central_velocity, psi, psi_sum_and_grad_
 
 __all__ = [
     "DEFAULT_POSITION_WIDTHS", "DEFAULT_VELOCITY_WIDTHS", "Stage", "make_schedule",
     "stabilization_energy", "fused_stabilization_energy", "farthest_point_sampling",
-    "ModePursuitResult", "mode_pursuit", "stabilize_vertices", "invert_rigid", "lbfgs",
+    "ModePursuitResult", "mode_pursuit", "stabilize_vertices", "invert_rigid",
 ]
 
 DEFAULT_POSITION_WIDTHS: tuple[float, ...] = (0.8, 0.4, 0.2, 0.1, 0.05)
@@ -299,32 +302,29 @@ def make_schedule(position_widths: Sequence[float] = DEFAULT_POSITION_WIDTHS,
 def farthest_point_sampling(points: Tensor, count: int) -> Tensor:
     """Pick `count` well-spread points, deterministically (greedy farthest-point sampling).
 
-    Starts at the point nearest the centroid; each next pick maximises the distance to the
-    picks so far (ties: lowest index).
+    Starts at the point nearest the centroid (not at a seeded random one, so the picks do not
+    depend on a seed); each next pick maximises the distance to the picks so far (ties: lowest
+    index). A tensor front end of `nodes.io.face_model.farthest_point_sampling`.
 
     Args:
         points: (N, 3) positions.
         count: number to pick (clipped to N).
     Returns:
-        (min(count, N),) int64 indices, sorted ascending.
+        (min(count, N),) int64 indices on `points.device`, sorted ascending.
     """
     n = points.shape[0]
     if count >= n:
         return torch.arange(n, device=points.device)
-    pts = points.to(torch.float64)
-    chosen = torch.empty(count, dtype=torch.long, device=points.device)
-    first = ((pts - pts.mean(0)) ** 2).sum(1).argmin()
-    dist = torch.full((n,), math.inf, dtype=torch.float64, device=points.device)
-    current = first
-    for i in range(count):
-        chosen[i] = current
-        dist = torch.minimum(dist, ((pts - pts[current]) ** 2).sum(1))
-        current = dist.argmax()
-    return chosen.sort().values
+    pts = points.detach().to(torch.float64)
+    first = int(((pts - pts.mean(0)) ** 2).sum(1).argmin())
+    picks = _farthest_point_sampling_np(pts.cpu().numpy(), count, first=first)
+    return torch.from_numpy(picks).to(points.device)
 
 
 def invert_rigid(matrices: Tensor) -> Tensor:
     """Return the inverses of rigid 4x4 matrices `[[R, t], [0, 1]] -> [[R^T, -R^T t], [0, 1]]`.
+
+    The tensor twin of `nodes.rigid.kabsch.invert_rigid` (mode pursuit's transforms are tensors).
 
     Args:
         matrices: (..., 4, 4) rigid transforms.
@@ -355,11 +355,10 @@ def stabilize_vertices(vertices: np.ndarray, matrices: np.ndarray, *, block_fram
     if matrices.shape != (vertices.shape[0], 4, 4):
         raise ValueError(f"matrices: expected shape ({vertices.shape[0]}, 4, 4), found {matrices.shape}")
     out = np.empty(vertices.shape, dtype=np.float32)
-    rot = np.swapaxes(matrices[:, :3, :3], 1, 2)            # R^T
-    trans = -(rot @ matrices[:, :3, 3:])[..., 0]            # -R^T t
+    inverse = _invert_rigid_np(matrices)
     for a in range(0, vertices.shape[0], block_frames):
         b = min(vertices.shape[0], a + block_frames)
-        out[a:b] = np.matmul(vertices[a:b].astype(np.float64), np.swapaxes(rot[a:b], 1, 2)) + trans[a:b, None]
+        out[a:b] = apply_rigid(inverse[a:b], vertices[a:b])
     return out
 
 
@@ -416,160 +415,6 @@ def _update_rest(x: Tensor, rot: Tensor, trans: Tensor, rest: Tensor, width: flo
             den += inside.sum(0)
         rest = rest + num / den.clamp(min=1.0)
     return rest
-
-
-# --------------------------------------------------------------------------------------
-# L-BFGS
-# --------------------------------------------------------------------------------------
-ObjectiveFn = Callable[[Tensor], tuple[float, Tensor]]
-
-
-def _cubic_minimum(x1: float, f1: float, g1: float, x2: float, f2: float, g2: float,
-                   lo: float, hi: float) -> float:
-    """Minimiser of the cubic through (x1, f1, g1), (x2, f2, g2), clipped to [lo, hi]."""
-    d1 = g1 + g2 - 3.0 * (f1 - f2) / (x1 - x2)
-    disc = d1 * d1 - g1 * g2
-    if disc < 0 or not math.isfinite(disc):
-        return 0.5 * (lo + hi)
-    d2 = math.sqrt(disc)
-    if x1 <= x2:
-        den = g2 - g1 + 2.0 * d2
-        t = x2 - (x2 - x1) * ((g2 + d2 - d1) / den) if den != 0 else 0.5 * (lo + hi)
-    else:
-        den = g1 - g2 + 2.0 * d2
-        t = x1 - (x1 - x2) * ((g1 + d2 - d1) / den) if den != 0 else 0.5 * (lo + hi)
-    return min(max(t, lo), hi) if math.isfinite(t) else 0.5 * (lo + hi)
-
-
-def _strong_wolfe(fun: ObjectiveFn, x: Tensor, step: float, d: Tensor, f: float, g: Tensor,
-                  gtd: float, *, c1: float = 1e-4, c2: float = 0.9, max_evals: int = 25
-                  ) -> tuple[float, Tensor, float]:
-    """Line search for a step satisfying the strong Wolfe conditions (bracket, then zoom).
-
-    Cubic interpolation as in minFunc (M. Schmidt) and `torch.optim.LBFGS`. Returns the best
-    point seen: (f, g, step); `step` may be 0 when nothing decreased the objective.
-    """
-    d_max = float(d.abs().max())
-    best = (f, g, 0.0)
-    t_prev, f_prev, g_prev, gtd_prev = 0.0, f, g, gtd
-    t = step
-    f_new, g_new = fun(x + t * d)
-    gtd_new = float(g_new @ d)
-    evals = 1
-    bracket: list[tuple[float, float, Tensor, float]] | None = None
-    while True:
-        if f_new < best[0]:
-            best = (f_new, g_new, t)
-        if f_new > f + c1 * t * gtd or (evals > 1 and f_new >= f_prev):
-            bracket = [(t_prev, f_prev, g_prev, gtd_prev), (t, f_new, g_new, gtd_new)]
-            break
-        if abs(gtd_new) <= -c2 * gtd:
-            return f_new, g_new, t
-        if gtd_new >= 0:
-            bracket = [(t_prev, f_prev, g_prev, gtd_prev), (t, f_new, g_new, gtd_new)]
-            break
-        if evals >= max_evals:
-            return best
-        t_next = _cubic_minimum(t_prev, f_prev, gtd_prev, t, f_new, gtd_new,
-                                t + 0.01 * (t - t_prev), 10.0 * t)
-        t_prev, f_prev, g_prev, gtd_prev = t, f_new, g_new, gtd_new
-        t = t_next
-        f_new, g_new = fun(x + t * d)
-        gtd_new = float(g_new @ d)
-        evals += 1
-    # Zoom: bracket[low] has the lower objective.
-    insufficient = False
-    while evals < max_evals:
-        low, high = (0, 1) if bracket[0][1] <= bracket[1][1] else (1, 0)
-        (a, fa, _, ga), (b, fb, _, gb) = bracket
-        if abs(b - a) * d_max < 1e-12:
-            break
-        t = _cubic_minimum(a, fa, ga, b, fb, gb, min(a, b), max(a, b))
-        width = max(a, b) - min(a, b)
-        eps = 0.1 * width
-        if min(max(a, b) - t, t - min(a, b)) < eps:
-            if insufficient or t >= max(a, b) or t <= min(a, b):
-                t = max(a, b) - eps if abs(t - max(a, b)) < abs(t - min(a, b)) else min(a, b) + eps
-                insufficient = False
-            else:
-                insufficient = True
-        else:
-            insufficient = False
-        f_new, g_new = fun(x + t * d)
-        gtd_new = float(g_new @ d)
-        evals += 1
-        if f_new < best[0]:
-            best = (f_new, g_new, t)
-        if f_new > f + c1 * t * gtd or f_new >= bracket[low][1]:
-            bracket[high] = (t, f_new, g_new, gtd_new)
-        else:
-            if abs(gtd_new) <= -c2 * gtd:
-                return f_new, g_new, t
-            if gtd_new * (bracket[high][0] - bracket[low][0]) >= 0:
-                bracket[high] = bracket[low]
-            bracket[low] = (t, f_new, g_new, gtd_new)
-    return best
-
-
-def lbfgs(fun: ObjectiveFn, x0: Tensor, *, iterations: int, history_size: int = 10
-          ) -> tuple[Tensor, float, int]:
-    """Minimise `fun` by L-BFGS with a strong-Wolfe line search, for a fixed iteration count.
-
-    Two-loop recursion (Nocedal and Wright, "Numerical Optimization", algorithm 7.4), first
-    step `min(1, 1 / |g|_1)` along -g (as `torch.optim.LBFGS`), then unit initial steps. Stops
-    early only when the direction is not a descent direction or the line search finds no
-    decrease (converged to working precision).
-
-    Args:
-        fun: x -> (value, gradient), x and gradient (N,) float64.
-        x0: (N,) starting point.
-        iterations: number of iterations (each one line search).
-        history_size: number of (s, y) pairs kept.
-    Returns:
-        (x, f(x), iterations done).
-    """
-    x = x0.clone()
-    f, g = fun(x)
-    s_hist: list[Tensor] = []
-    y_hist: list[Tensor] = []
-    rho_hist: list[float] = []
-    gamma = 1.0
-    done = 0
-    for it in range(iterations):
-        if not s_hist:
-            d = -g
-            step = min(1.0, 1.0 / max(float(g.abs().sum()), 1e-300))
-        else:
-            q = -g
-            alphas = []
-            for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist)):
-                alpha = rho * float(s @ q)
-                q = q - alpha * y
-                alphas.append(alpha)
-            d = q * gamma
-            for (s, y, rho), alpha in zip(zip(s_hist, y_hist, rho_hist), reversed(alphas)):
-                beta = rho * float(y @ d)
-                d = d + (alpha - beta) * s
-            step = 1.0
-        gtd = float(g @ d)
-        if not gtd < 0:
-            break
-        f_new, g_new, t = _strong_wolfe(fun, x, step, d, f, g, gtd)
-        done = it + 1
-        if t == 0.0:
-            break
-        s, y = t * d, g_new - g
-        ys = float(y @ s)
-        if ys > 1e-10:
-            if len(s_hist) == history_size:
-                s_hist.pop(0), y_hist.pop(0), rho_hist.pop(0)
-            s_hist.append(s)
-            y_hist.append(y)
-            rho_hist.append(1.0 / ys)
-            gamma = ys / float(y @ y)
-        x = x + s
-        f, g = f_new, g_new
-    return x, f, done
 
 
 # --------------------------------------------------------------------------------------

@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from nodegraph import Files, NodeError, RigidSequence, run_node
 from nodes.io.face_model import load_face_model
-from nodes.report.plots import (CaptureReport, invert_rigid, plot_head_motion, plot_position_histograms,
-                                position_spread, rigid_to_euler_translation, stabilize_points)
+from nodes.report.plots import (CaptureReport, plot_head_motion, plot_position_histograms, position_spread,
+                                rigid_to_euler_translation, stabilize_points)
+from nodes.rigid.kabsch import invert_rigid
 from nodes.synth.performance import generate_performance
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

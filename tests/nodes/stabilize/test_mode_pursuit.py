@@ -1,15 +1,14 @@
-"""Tests of nodes.stabilize.mode_pursuit (energy, L-BFGS, optimizer) and the stabilize.ModePursuit node."""
+"""Tests of nodes.stabilize.mode_pursuit (energy, optimizer) and the stabilize.ModePursuit node."""
 
 import numpy as np
 import pytest
 import torch
-from scipy.optimize import rosen, rosen_der
 from scipy.spatial.transform import Rotation
 
 from nodegraph import MeshSequence, NodeError, RigidSequence, run_node
 from nodes.stabilize import ModePursuit
 from nodes.stabilize.mode_pursuit import (farthest_point_sampling, fused_stabilization_energy, invert_rigid,
-                                          lbfgs, make_schedule, mode_pursuit, stabilization_energy,
+                                          make_schedule, mode_pursuit, stabilization_energy,
                                           stabilize_vertices)
 
 
@@ -166,15 +165,6 @@ def test_make_schedule_walks_widths_and_spreads_refinements():
     assert [(s.width_pos, s.refine) for s in many] == [(1.0, False), (0.5, True), (0.5, True), (0.5, True)]
     with pytest.raises(ValueError, match="velocity_widths: expected as many widths as position_widths"):
         make_schedule([1.0, 0.5], [0.1])
-
-
-def test_lbfgs_minimises_rosenbrock():
-    def fun(x):
-        xn = x.numpy()
-        return float(rosen(xn)), torch.tensor(rosen_der(xn))
-    x, f, iters = lbfgs(fun, torch.tensor([-1.2, 1.0, -0.5, 0.8], dtype=torch.float64), iterations=200)
-    assert f < 1e-10 and iters <= 200
-    np.testing.assert_allclose(x.numpy(), 1.0, atol=1e-5)
 
 
 def test_farthest_point_sampling_is_deterministic_and_spread():
