@@ -26,7 +26,8 @@ from typing import Any, Sequence
 from . import registry
 from .cache import Cache, cache_dir_from_env
 from .errors import GraphError, NodeError
-from .graph import Graph, write_text_atomic
+from .files import write_text_atomic
+from .graph import Graph
 from .runner import explain, run
 from .schedule import parse_frames
 from .types import Files, JsonValue, PortType, Table

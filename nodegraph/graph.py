@@ -38,8 +38,7 @@ from .errors import GraphError, GraphIssue
 from .files import write_text_atomic
 from .node import Node, format_validation_error
 
-__all__ = ["SCHEMA", "PortRef", "NodeRef", "NodeSpec", "GraphParameter", "Graph", "parse_value",
-           "write_text_atomic"]
+__all__ = ["SCHEMA", "PortRef", "NodeRef", "NodeSpec", "GraphParameter", "Graph", "parse_value"]
 
 SCHEMA = "nodegraph/1"
 

@@ -12,7 +12,6 @@ written atomically: a temporary name in the same folder, then `os.replace`.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Mapping, NamedTuple, Sequence
 
@@ -23,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 
-from ..io._files import files_value
+from ..io._files import atomic_path, files_value
 from ..rigid.kabsch import apply_rigid, invert_rigid
 
 __all__ = [
@@ -124,19 +123,11 @@ def position_spread(world: np.ndarray, skull: np.ndarray | Mapping[str, np.ndarr
 
 
 def save_figure(fig: Figure, path: str | os.PathLike) -> Path:
-    """Write `fig` as PNG atomically (temp file in the same folder, then os.replace)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write `fig` as PNG atomically (`atomic_path`: temp file in the same folder, then os.replace)."""
     FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            fig.savefig(handle, format="png", dpi=100)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        fig.savefig(handle, format="png", dpi=100)
+    return Path(path)
 
 
 def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,

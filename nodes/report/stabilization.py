@@ -8,7 +8,7 @@ from pathlib import Path
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence, Table
-from nodegraph.graph import write_text_atomic
+from nodegraph.files import write_text_atomic
 
 from .metrics import StabilizationErrors, stabilization_errors
 from ..io._files import files_value
