@@ -1,4 +1,5 @@
-"""Mode-pursuit stabilization: the energy and its optimizer.
+"""Mode-pursuit stabilization: the optimizer (the energy is in `energy.py`, the schedule in
+`schedule.py`).
 
 Method: "Mode pursuit stabilization" (seed paper 1, `shared/seeds/mode_pursuit_stabilization.txt`).
 Find world-to-skull rigid transforms `r_f` so that the stabilized mesh `S_f = r_f(X_f)` of a
@@ -15,7 +16,7 @@ saturate). The motion is a dual-quaternion B-spline (SDLB):
 `q_i` (8 numbers each, optimized directly as in the paper). Optimization is a numerical
 continuation: L-BFGS (strong-Wolfe line search) restarted at every stage with a fixed iteration
 count, stages walking down the width schedule, with midpoint refinement interleaved (see
-`make_schedule`).
+`schedule.make_schedule`).
 
 Coarse to fine: the control polygon lives at the finest spacing `spacing / 2^refinements`
 from the start (the initial motion is least-squares fitted there, so fast head motion in the
@@ -37,9 +38,9 @@ Implementation notes (what makes it fast):
   - The big tensor is kept as (F, 3, V) float32 so the per-frame transform is one `baddbmm`
     and reductions run along contiguous memory.
   - Energy and gradient with respect to the per-frame (R_f, t_f) are computed together in
-    one fused pass over blocks of frames (no autograd graph over F x V x 3 tensors; blocks of
-    about 2^18 coordinates stay in cache and bound the memory); autograd only runs over the
-    small spline (F x 8). `torch.compile` of the block kernel is optional (`compile=True`).
+    one fused pass over blocks of frames (`energy.fused_energy`: no autograd graph over
+    F x V x 3 tensors; blocks of about 2^18 coordinates stay in cache and bound the memory);
+    autograd only runs over the small spline (F x 8). `torch.compile` of the block kernel is optional (`compile=True`).
   - The energy uses at most `max_vertices` vertices (default 2000), chosen by farthest-point
     sampling on the first frame (spread is rigid-invariant; deterministic); the result is
     applied to every vertex afterwards, in blocks of frames.
@@ -54,7 +55,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
@@ -67,233 +67,14 @@ from .bspline import SplineBasis, evaluate_spline, fit_control_points, frame_bas
 from .dualquat import (dualquat_align_hemisphere, dualquat_from_rotation_translation,
                        dualquat_identity, dualquat_normalize, dualquat_to_rotmat_translation,
                        rotmat_to_quat)
+from .energy import EnergyData, block_energy, default_block_frames, fused_energy
 from .lbfgs import lbfgs
-from .penalty import REDUCED_END_COEFFS, VELOCITY_COEFFS, central_velocity, psi, psi_sum_and_grad_
+from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, StageLog, make_schedule
 
-__all__ = [
-    "DEFAULT_POSITION_WIDTHS", "DEFAULT_VELOCITY_WIDTHS", "Stage", "make_schedule",
-    "stabilization_energy", "fused_stabilization_energy", "farthest_point_sampling",
-    "ModePursuitResult", "mode_pursuit", "stabilize_vertices", "invert_rigid",
-]
-
-DEFAULT_POSITION_WIDTHS: tuple[float, ...] = (0.8, 0.4, 0.2, 0.1, 0.05)
-"""Position widths of the paper's continuation schedule (cm)."""
-DEFAULT_VELOCITY_WIDTHS: tuple[float, ...] = (0.2, 0.1, 0.05, 0.025, 0.0125)
-"""Velocity widths of the paper's continuation schedule (cm / frame)."""
+__all__ = ["ModePursuitResult", "mode_pursuit", "farthest_point_sampling", "stabilize_vertices",
+           "invert_rigid"]
 
 ProgressFn = Callable[[float, str], None]
-
-
-# --------------------------------------------------------------------------------------
-# Energy
-# --------------------------------------------------------------------------------------
-def stabilization_energy(vertices: Tensor, rot: Tensor, trans: Tensor, rest: Tensor, *,
-                         width_pos: float, width_vel: float, velocity_weight: float) -> Tensor:
-    """Return the mode-pursuit energy (eq. 4), plainly, differentiable by autograd.
-
-    This is the reference formulation (tests, small problems); `mode_pursuit` uses the fused
-    `fused_stabilization_energy`, which returns the same value and gradient.
-
-    Args:
-        vertices: (F, V, 3) tracked vertices X, world frame, cm; F >= 7.
-        rot: (F, 3, 3) world-to-skull rotations.
-        trans: (F, 3) world-to-skull translations, cm: `S_f = rot_f X_f + trans_f`.
-        rest: (V, 3) rest mesh R, skull frame, cm.
-        width_pos: position width (cm).
-        width_vel: velocity width (cm / frame).
-        velocity_weight: lambda >= 0.
-    Returns:
-        () mean penalty per coordinate: `(sum psi_pos + lambda sum psi_vel) / (3 F V)`.
-    """
-    stab = vertices @ rot.transpose(1, 2) + trans[:, None, :]
-    pos = psi(stab - rest, width_pos).sum()
-    vel = psi(central_velocity(stab, dim=0, ends="reduced"), width_vel).sum()
-    return (pos + velocity_weight * vel) / stab.numel()
-
-
-def _block_energy(x: Tensor, rot: Tensor, trans: Tensor, rest_neg: Tensor, inner: tuple[int, int],
-                  inv_w_pos: float, inv_w_vel: float, pos_scale: float, vel_scale: float,
-                  vel_range: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
-    """Energy and gradient of one block of frames (coordinates first: x is (B, 3, V)).
-
-    Args:
-        x: (B, 3, V) float32 tracked vertices of the block plus up to 3 halo frames a side.
-        rot: (B, 3, 3) float32; trans: (B, 3) float32.
-        rest_neg: (3, V) float32, `-rest / width_pos`.
-        inner: [a, b) block frames (indices into x) owning the position terms.
-        inv_w_pos, inv_w_vel: 1 / widths.
-        pos_scale, vel_scale: weights of the two sums (1 / N and lambda / N).
-        vel_range: [a, b) velocity centres (indices into x), each with 3 frames a side.
-    Returns:
-        energy () float64, grad_rot (B, 3, 3), grad_trans (B, 3).
-    """
-    stab = torch.baddbmm(trans[:, :, None], rot, x)                           # (B, 3, V)
-    a, b = inner
-    z = torch.add(rest_neg, stab[a:b], alpha=inv_w_pos)                      # (S - R) / w
-    e_pos, h = psi_sum_and_grad_(z)
-    grad = torch.empty_like(stab)
-    torch.mul(h, 4.0 * pos_scale * inv_w_pos, out=grad[a:b])
-    grad[:a].zero_()
-    grad[b:].zero_()
-    energy = pos_scale * e_pos
-    c0, c1 = vel_range
-    if c1 > c0:
-        a1, a2, a3 = (coef * inv_w_vel for coef in VELOCITY_COEFFS)
-        zv = torch.sub(stab[c0 + 1:c1 + 1], stab[c0 - 1:c1 - 1]).mul_(a1)
-        zv.add_(stab[c0 + 2:c1 + 2], alpha=a2).sub_(stab[c0 - 2:c1 - 2], alpha=a2)
-        zv.add_(stab[c0 + 3:c1 + 3], alpha=a3).sub_(stab[c0 - 3:c1 - 3], alpha=a3)
-        e_vel, hv = psi_sum_and_grad_(zv)
-        energy = energy + vel_scale * e_vel
-        for k, coef in enumerate(VELOCITY_COEFFS, start=1):
-            alpha = 4.0 * vel_scale * coef * inv_w_vel
-            grad[c0 + k:c1 + k].add_(hv, alpha=alpha)
-            grad[c0 - k:c1 - k].sub_(hv, alpha=alpha)
-    grad_rot = torch.bmm(grad, x.transpose(1, 2))
-    grad_trans = grad.sum(2)
-    return energy, grad_rot, grad_trans
-
-
-@dataclass
-class _EnergyData:
-    """The fixed data of a fused energy: vertices (F, 3, V) float32 and settings."""
-
-    x: Tensor
-    rest: Tensor
-    width_pos: float
-    width_vel: float
-    velocity_weight: float
-    block_frames: int
-    kernel: Callable[..., tuple[Tensor, Tensor, Tensor]] = _block_energy
-
-
-def _fused_value_and_grad(data: _EnergyData, rot: Tensor, trans: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    x = data.x
-    f, _, v = x.shape
-    rot32, trans32 = rot.to(x.dtype), trans.to(x.dtype)
-    inv_w_pos, inv_w_vel = 1.0 / data.width_pos, 1.0 / data.width_vel
-    rest_neg = data.rest * (-inv_w_pos)
-    scale = 1.0 / (3 * f * v)
-    grad_rot = torch.zeros(f, 3, 3, dtype=x.dtype, device=x.device)
-    grad_trans = torch.zeros(f, 3, dtype=x.dtype, device=x.device)
-    total = torch.zeros((), dtype=torch.float64, device=x.device)
-    for start in range(0, f, data.block_frames):
-        stop = min(f, start + data.block_frames)
-        lo, hi = max(0, start - 3), min(f, stop + 3)
-        c0, c1 = max(start, 3), min(stop, f - 3)
-        energy, g_rot, g_trans = data.kernel(
-            x[lo:hi], rot32[lo:hi], trans32[lo:hi], rest_neg, (start - lo, stop - lo),
-            inv_w_pos, inv_w_vel, scale, scale * data.velocity_weight,
-            (c0 - lo, max(c1, c0) - lo))
-        total = total + energy
-        grad_rot[lo:hi] += g_rot
-        grad_trans[lo:hi] += g_trans
-    # Velocities of the three first and last frames (lower-order stencils on 5 frames).
-    head = torch.tensor(REDUCED_END_COEFFS, dtype=x.dtype, device=x.device)          # (3, 5)
-    tail = -head.flip(0, 1)                                                           # frames F-3..F-1
-    for coeffs, lo in ((head, 0), (tail, f - 5)):
-        xs = x[lo:lo + 5]
-        stab = torch.baddbmm(trans32[lo:lo + 5, :, None], rot32[lo:lo + 5], xs)        # (5, 3, V)
-        z = torch.einsum("aj,jcv->acv", coeffs * inv_w_vel, stab)
-        energy, h = psi_sum_and_grad_(z)
-        total = total + scale * data.velocity_weight * energy
-        grad = torch.einsum("aj,acv->jcv", coeffs * (4.0 * scale * data.velocity_weight * inv_w_vel), h)
-        grad_rot[lo:lo + 5] += torch.bmm(grad, xs.transpose(1, 2))
-        grad_trans[lo:lo + 5] += grad.sum(2)
-    return total, grad_rot.to(rot.dtype), grad_trans.to(trans.dtype)
-
-
-class _FusedEnergy(torch.autograd.Function):
-    """Energy whose forward also computes the gradient (L-BFGS always needs both)."""
-
-    @staticmethod
-    def forward(ctx, rot: Tensor, trans: Tensor, data: _EnergyData) -> Tensor:  # type: ignore[override]
-        total, grad_rot, grad_trans = _fused_value_and_grad(data, rot.detach(), trans.detach())
-        ctx.save_for_backward(grad_rot, grad_trans)
-        return total.to(rot.dtype)
-
-    @staticmethod
-    def backward(ctx, grad_out: Tensor):  # type: ignore[override]
-        grad_rot, grad_trans = ctx.saved_tensors
-        return grad_out * grad_rot, grad_out * grad_trans, None
-
-
-def fused_stabilization_energy(vertices: Tensor, rot: Tensor, trans: Tensor, rest: Tensor, *,
-                               width_pos: float, width_vel: float, velocity_weight: float,
-                               block_frames: int = 0) -> Tensor:
-    """Return the same value as `stabilization_energy`, computed by the fused block kernel.
-
-    The gradient with respect to `rot` and `trans` is computed in the forward pass (no
-    autograd graph over the vertices); `vertices` and `rest` are constants.
-
-    Args:
-        vertices: (F, V, 3) tracked vertices (converted once to (F, 3, V) float32).
-        rot, trans, rest, width_pos, width_vel, velocity_weight: as `stabilization_energy`.
-        block_frames: frames per block (0: about 2^18 coordinates per block).
-    Returns:
-        () energy in `rot`'s dtype, differentiable in `rot` and `trans`.
-    """
-    x = vertices.detach().to(torch.float32).permute(0, 2, 1).contiguous()
-    data = _EnergyData(x, rest.detach().to(torch.float32).T.contiguous(), float(width_pos),
-                       float(width_vel), float(velocity_weight),
-                       block_frames or _default_block(x.shape[0], x.shape[2]))
-    return _FusedEnergy.apply(rot, trans, data)
-
-
-def _default_block(num_frames: int, num_vertices: int) -> int:
-    return max(8, min(num_frames, (1 << 18) // max(1, 3 * num_vertices)))
-
-
-# --------------------------------------------------------------------------------------
-# Schedule
-# --------------------------------------------------------------------------------------
-class Stage(NamedTuple):
-    """One L-BFGS restart.
-
-    Attributes:
-        width_pos: position width (cm).
-        width_vel: velocity width (cm / frame).
-        refine: refine the control polygon (midpoint) before this stage.
-    """
-
-    width_pos: float
-    width_vel: float
-    refine: bool
-
-
-def make_schedule(position_widths: Sequence[float] = DEFAULT_POSITION_WIDTHS,
-                  velocity_widths: Sequence[float] = DEFAULT_VELOCITY_WIDTHS,
-                  refinements: int = 2) -> list[Stage]:
-    """Return the continuation schedule: the widths in order, refinements interleaved.
-
-    The K width pairs are walked once, coarse to fine. The `refinements` refinements are
-    spread evenly over the stages after the first, so that the coarse spline takes the wide
-    widths (large basin) and the finest one the narrow widths; when there are more
-    refinements than widths, the last width pair is repeated after each extra refinement.
-
-    Args:
-        position_widths: K widths (cm), decreasing.
-        velocity_widths: K widths (cm / frame).
-        refinements: number of midpoint refinements R >= 0.
-    Returns:
-        max(K, R + 1) stages.
-
-    Example:
-        >>> [s.refine for s in make_schedule(refinements=2)]
-        [False, False, True, False, True]
-    """
-    if len(position_widths) != len(velocity_widths) or not position_widths:
-        raise ValueError(f"velocity_widths: expected as many widths as position_widths "
-                         f"({len(position_widths)}), found {len(velocity_widths)}")
-    if refinements < 0:
-        raise ValueError(f"refinements: expected >= 0, found {refinements}")
-    widths = list(zip(position_widths, velocity_widths))
-    while len(widths) < refinements + 1:
-        widths.append(widths[-1])
-    k = len(widths)
-    # Level of stage j: floor(j * (R + 1) / K), so level 0 first and level R last.
-    levels = [j * (refinements + 1) // k for j in range(k)]
-    return [Stage(float(wp), float(wv), j > 0 and levels[j] > levels[j - 1])
-            for j, (wp, wv) in enumerate(widths)]
 
 
 # --------------------------------------------------------------------------------------
@@ -371,8 +152,7 @@ class ModePursuitResult(NamedTuple):
         vertex_ids: (E,) int64 indices (into the input vertices) of the energy vertices.
         evaluations: number of energy + gradient evaluations.
         iterations: number of L-BFGS iterations (over all stages).
-        stages: one dict per stage: width_pos, width_vel, spacing (frames), control_points,
-            iterations, evaluations, energy_start, energy_end, seconds.
+        stages: one `StageLog` per stage of the schedule.
         seconds: wall time of the optimization.
     """
 
@@ -381,7 +161,7 @@ class ModePursuitResult(NamedTuple):
     vertex_ids: np.ndarray
     evaluations: int
     iterations: int
-    stages: list[dict]
+    stages: list[StageLog]
     seconds: float
 
 
@@ -522,7 +302,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     trans0 = (rot0 @ centre + world_to_skull[:, :3, 3] - centre) / scale
     x = ((x_sel - centre.float()) / scale).to(dev, torch.float32).permute(0, 2, 1).contiguous()  # (F, 3, E)
     del x_sel
-    block = _default_block(num_frames, x.shape[2])
+    block = default_block_frames(num_frames, x.shape[2])
 
     # -- initial spline, at the finest spacing -----------------------------------------------
     final_spacing = float(spacing) / 2 ** refinements
@@ -547,12 +327,12 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
             rest_x = stab0.median(dim=0).values.contiguous()                               # (3, E)
             del stab0
 
-    kernel: Callable[..., tuple[Tensor, Tensor, Tensor]] = _block_energy
+    kernel: Callable[..., tuple[Tensor, Tensor, Tensor]] = block_energy
     if compile:
-        kernel = torch.compile(_block_energy, dynamic=True)
+        kernel = torch.compile(block_energy, dynamic=True)
     counters = {"evaluations": 0}
     total_iterations = 0
-    stages_out: list[dict] = []
+    stages_out: list[StageLog] = []
     level = 0
 
     def corrected(base: Tensor, delta: Tensor, from_level: int) -> Tensor:
@@ -572,7 +352,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
                 rot, trans = _spline_transforms(base, basis)
             rest_x = _update_rest(x, rot.to(torch.float32), trans.to(torch.float32), rest_x,
                                   stage.width_pos / scale, 3, block)
-        data = _EnergyData(x, rest_x, stage.width_pos / scale, stage.width_vel / scale,
+        data = EnergyData(x, rest_x, stage.width_pos / scale, stage.width_vel / scale,
                            float(velocity_weight), block, kernel)
         shape = (num_control_points(num_frames, current_spacing), 8)
         energies: list[float] = []
@@ -580,7 +360,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         def objective(flat: Tensor) -> tuple[float, Tensor]:
             delta = flat.view(shape).requires_grad_(True)
             rot, trans = _spline_transforms(corrected(base, delta, level), basis)
-            energy = _FusedEnergy.apply(rot, trans, data)
+            energy = fused_energy(rot, trans, data)
             (grad,) = torch.autograd.grad(energy, delta)
             energies.append(float(energy.detach()))
             return energies[-1], grad.reshape(-1)
@@ -592,19 +372,19 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         total_iterations += stage_iters
         with torch.no_grad():
             base = dualquat_normalize(corrected(base, flat.view(shape), level))
-        stages_out.append({
-            "width_pos": stage.width_pos, "width_vel": stage.width_vel,
-            "spacing": current_spacing, "control_points": shape[0],
-            "iterations": stage_iters,
-            "evaluations": len(energies),
-            "energy_start": energies[0] if energies else float("nan"),
-            "energy_end": energies[-1] if energies else float("nan"),
-            "seconds": time.perf_counter() - stage_started,
-        })
+        stages_out.append(StageLog(
+            width_pos=stage.width_pos, width_vel=stage.width_vel,
+            spacing=current_spacing, control_points=shape[0],
+            iterations=stage_iters,
+            evaluations=len(energies),
+            energy_start=energies[0] if energies else float("nan"),
+            energy_end=energies[-1] if energies else float("nan"),
+            seconds=time.perf_counter() - stage_started,
+        ))
         if progress is not None:
             progress((index + 1) / len(schedule),
                      f"stage {index + 1}/{len(schedule)}: width {stage.width_pos:g} cm, spacing "
-                     f"{current_spacing:g} frames, energy {stages_out[-1]['energy_end']:.6g}")
+                     f"{current_spacing:g} frames, energy {stages_out[-1].energy_end:.6g}")
     control = base
 
     # -- back to cm, skull-to-world ----------------------------------------------------------

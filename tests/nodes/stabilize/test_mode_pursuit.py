@@ -7,9 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from nodegraph import MeshSequence, NodeError, RigidSequence, run_node
 from nodes.stabilize import ModePursuit
-from nodes.stabilize.mode_pursuit import (farthest_point_sampling, fused_stabilization_energy, invert_rigid,
-                                          make_schedule, mode_pursuit, stabilization_energy,
-                                          stabilize_vertices)
+from nodes.stabilize.energy import fused_stabilization_energy, stabilization_energy
+from nodes.stabilize.mode_pursuit import farthest_point_sampling, invert_rigid, mode_pursuit, stabilize_vertices
+from nodes.stabilize.schedule import make_schedule
 
 
 # -- synthetic data --------------------------------------------------------------------------
@@ -203,7 +203,7 @@ def test_mode_pursuit_recovers_head_motion_from_kabsch_init():
     assert np.mean(err) < 0.5 * np.mean(err_init), (np.mean(err), np.mean(err_init))
     assert result.matrices.shape == (620, 4, 4) and result.matrices.dtype == np.float64
     assert result.evaluations >= result.iterations > 0
-    assert len(result.stages) == 5 and sum(s["evaluations"] for s in result.stages) == result.evaluations
+    assert len(result.stages) == 5 and sum(s.evaluations for s in result.stages) == result.evaluations
     assert [round(f, 6) for f, _ in messages] == [0.2, 0.4, 0.6, 0.8, 1.0]
 
 
