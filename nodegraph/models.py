@@ -1,0 +1,185 @@
+"""Networks as plain data: the architecture registry behind `TorchModel.build`.
+
+A module that defines a network registers a builder under a stable name::
+
+    @register_architecture("dynamics.MLP")
+    def build_mlp(config: dict) -> torch.nn.Module:
+        return MLP(**config)
+
+and stores a trained one as `TorchModel.from_module("dynamics.MLP", config, module)`.
+`TorchModel.build()` (here: `build_model`) calls the builder with the stored config, checks
+that the state keys, shapes and dtypes match the module it built, and loads the weights.
+Builders registered in node modules are found after the node plugins are imported (done
+on the first unknown name).
+
+Files (`save_model` / `load_model`) are npz archives of `TorchModel.to_arrays()` plus a
+`__port_type__` marker: plain arrays and JSON strings, read with `allow_pickle=False`.
+
+This module does not import torch at module level; only `build_model` does.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .types import TorchModel
+
+__all__ = ["register_architecture", "architectures", "get_architecture", "build_model",
+           "save_model", "load_model"]
+
+Builder = Callable[[dict[str, Any]], Any]
+
+_ARCHITECTURES: dict[str, Builder] = {}
+
+
+def register_architecture(name: str) -> Callable[[Builder], Builder]:
+    """Decorator: register `builder(config) -> torch.nn.Module` under `name`.
+
+    Re-registering the same function (e.g. a module imported twice) is allowed; a different
+    function under a known name is an error.
+
+    Raises:
+        ValueError: `name` empty, or already taken by another builder.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"register_architecture: expected a non-empty name, found {name!r}")
+
+    def decorator(builder: Builder) -> Builder:
+        known = _ARCHITECTURES.get(name)
+        if known is not None and (known.__module__, known.__qualname__) != \
+                (builder.__module__, builder.__qualname__):
+            raise ValueError(f"architecture '{name}' registered twice: "
+                             f"{known.__module__}.{known.__qualname__} and "
+                             f"{builder.__module__}.{builder.__qualname__}")
+        _ARCHITECTURES[name] = builder
+        return builder
+
+    return decorator
+
+
+def architectures() -> dict[str, Builder]:
+    """Every registered architecture by name (node plugins imported first)."""
+    from .registry import load_plugins
+
+    load_plugins()
+    return dict(sorted(_ARCHITECTURES.items()))
+
+
+def get_architecture(name: str) -> Builder:
+    """Return the builder registered as `name` (importing the node plugins if needed).
+
+    Raises:
+        KeyError: naming the unknown architecture, the closest and all known names.
+    """
+    if name not in _ARCHITECTURES:
+        from .registry import load_plugins
+
+        load_plugins()
+    try:
+        return _ARCHITECTURES[name]
+    except KeyError:
+        close = difflib.get_close_matches(name, list(_ARCHITECTURES), n=3)
+        hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
+        raise KeyError(f"unknown architecture '{name}'{hint} (known: {sorted(_ARCHITECTURES)}; "
+                       "register one with nodegraph.models.register_architecture)") from None
+
+
+def _mismatches(model: "TorchModel", expected: dict[str, Any]) -> list[str]:
+    """Differences between stored weights and the state_dict of the module built from config."""
+    problems = []
+    missing = sorted(set(expected) - set(model.state))
+    unexpected = sorted(set(model.state) - set(expected))
+    if missing:
+        problems.append(f"missing from the stored state: {missing}")
+    if unexpected:
+        problems.append(f"stored but not in the module: {unexpected}")
+    for key in sorted(set(expected) & set(model.state)):
+        tensor, array = expected[key], model.state[key]
+        if tuple(tensor.shape) != tuple(array.shape):
+            problems.append(f"'{key}': the module has shape {tuple(tensor.shape)}, stored "
+                            f"{tuple(array.shape)}")
+        elif str(tensor.dtype).removeprefix("torch.") != str(array.dtype):
+            problems.append(f"'{key}': the module has dtype {tensor.dtype}, stored {array.dtype}")
+    return problems
+
+
+def build_model(model: "TorchModel", device: str = "cpu") -> Any:
+    """Construct `model`'s module via the registry and load its weights (bit for bit).
+
+    Args:
+        model: the stored network.
+        device: torch device string ("cpu", "cuda", "cuda:1", ...).
+    Returns:
+        `torch.nn.Module` on `device`, in eval mode.
+    Raises:
+        KeyError: unknown architecture.
+        TypeError: the builder did not return a `torch.nn.Module`.
+        ValueError: "TorchModel 'ARCH' (config {...}): ..." listing missing/unexpected keys and
+            shape or dtype differences (no weight is ever cast or dropped silently).
+    """
+    import torch
+
+    builder = get_architecture(model.architecture)
+    module = builder(dict(model.config))
+    where = f"TorchModel '{model.architecture}' (config {model.config})"
+    if not isinstance(module, torch.nn.Module):
+        raise TypeError(f"{where}: the builder {builder.__module__}.{builder.__qualname__} must "
+                        f"return a torch.nn.Module, found {type(module).__name__}")
+    problems = _mismatches(model, module.state_dict())
+    if problems:
+        raise ValueError(f"{where}: the stored weights do not match the module the config "
+                         f"builds: {'; '.join(problems)}")
+    state = {key: torch.from_numpy(np.array(array)) for key, array in model.state.items()}
+    module.load_state_dict(state, strict=True)
+    return module.to(device).eval()
+
+
+def save_model(model: "TorchModel", path: str | os.PathLike) -> None:
+    """Write `model` to `path` (.npz) through a temp file in the same folder and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"__port_type__": np.array(type(model).type_name), **model.to_arrays()}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_model(path: str | os.PathLike) -> "TorchModel":
+    """Read a model written by `save_model` (no pickle).
+
+    Raises:
+        ValueError: "FILE: ..." for an unreadable file or one that holds no TorchModel.
+    """
+    from .types import TorchModel
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: np.array(data[key]) for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise ValueError(f"{os.fspath(path)}: expected a TorchModel .npz, found an unreadable "
+                         f"file ({type(err).__name__}: {err})") from err
+    kind = str(arrays.pop("__port_type__", "(none)"))
+    if kind != TorchModel.type_name:
+        raise ValueError(f"{os.fspath(path)}: expected a TorchModel .npz ('__port_type__' = "
+                         f"'TorchModel'), found '{kind}'")
+    try:
+        model = TorchModel.from_arrays(arrays)
+    except (TypeError, KeyError, ValueError) as err:
+        raise ValueError(f"{os.fspath(path)}: expected the arrays of a TorchModel, found keys "
+                         f"{sorted(arrays)} ({err})") from err
+    model.validate(os.fspath(path))
+    return model
