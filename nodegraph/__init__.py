@@ -6,6 +6,8 @@ from .graph import Graph, PortRef
 from .runner import RunResult, explain, run
 from .types import (FaceModel, Files, FlowSequence, ImageSequence, JsonValue, Landmarks2D,
                     MeshSequence, ParamSequence, PortType, RigidSequence, Table, TorchModel)
+from .types import Camera, CameraRig
+from .models import register_architecture
 
 __all__ = [
     "GraphError", "GraphIssue", "InputError", "NodeError", "NodegraphError",
@@ -13,5 +15,6 @@ __all__ = [
     "windowed", "FaceModel", "Files", "FlowSequence", "ImageSequence", "JsonValue",
     "Landmarks2D", "MeshSequence", "ParamSequence", "PortType", "RigidSequence", "Table",
     "TorchModel", "Graph", "PortRef", "RunResult", "explain", "run",
+    "Camera", "CameraRig", "register_architecture",
 ]
 __version__ = "0.1.0"

@@ -2,4 +2,5 @@
 
 from .._areas import import_modules
 
-import_modules(__name__, ["mesh", "image", "video", "sequences", "face_model", "stabilization"])
+import_modules(__name__, ["mesh", "image", "video", "sequences", "face_model", "stabilization",
+                          "camera"])
