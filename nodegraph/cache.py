@@ -9,8 +9,13 @@ Layout under the cache folder (default `.nodegraph/cache`, or `NODEGRAPH_CACHE`)
 
     objects/ab/<key>/manifest.json   # written last: its presence marks a complete entry
     objects/ab/<key>/<port>.npz      # one file per output port (no pickles)
+    objects/ab/<key>/copy_<i>        # writers: copies of small written files (restored from here)
+    written/ab/<key>.json            # writers: path, size, mtime and sha256 of each file written
+    hashes/ab/<path hash>.json       # input files: sha256 remembered by (path, size, mtime)
+    code/<digest>.json               # the source files behind a code hash (for --explain)
     errors/<node>/<start>-<stop>.json
     last/<node>.json                 # key descriptions of the last run, for --explain
+    NODEGRAPH_CACHE                  # marker: `clear` and `gc` refuse folders without it
 
 An entry is written into a temporary folder and renamed into place, so a crash leaves no
 partial entry and concurrent workers never see one; when two write the same key, the
@@ -18,6 +23,12 @@ second rename loses and its copy is discarded. Reads check every file's size and
 against the manifest: a truncated or corrupted entry is removed and reported as a miss.
 (That check is also why entries are not fsynced: after a power loss a damaged entry is
 detected and recomputed, never returned.)
+
+Nodes that write files (savers, reports) are cached like any other node, and their entry
+counts as a hit only while every file they wrote is still on disk exactly as written: same
+absolute path, and same size and mtime, or, when the mtime moved, the same sha256. A file
+that is missing or differs is restored from the entry's copy when the writer's files were
+small enough to keep one (`COPY_LIMIT`), else the writer runs again.
 """
 
 from __future__ import annotations
@@ -27,6 +38,7 @@ import io
 import json
 import os
 import shutil
+import socket
 import time
 import uuid
 from pathlib import Path
@@ -34,13 +46,17 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .files import write_text_atomic
-from .types import PortType, port_type_by_name
+from .files import file_sha256, write_text_atomic
+from .types import Files, PortType, port_type_by_name
 
-__all__ = ["DEFAULT_CACHE", "cache_dir_from_env", "canonical_json", "make_key", "Cache",
-           "CorruptEntry"]
+__all__ = ["DEFAULT_CACHE", "MARKER", "COPY_LIMIT", "cache_dir_from_env", "canonical_json", "make_key",
+           "Cache", "CorruptEntry", "NotACache"]
 
 DEFAULT_CACHE = ".nodegraph/cache"
+MARKER = "NODEGRAPH_CACHE"
+COPY_LIMIT = 64 << 20  # writers whose files total at most this many bytes keep a copy in the entry
+_SUBFOLDERS = ("objects", "tmp", "written", "hashes", "code", "errors", "last")
+_HOST = socket.gethostname().replace(".", "-")  # temp folder names split on "."
 
 
 def cache_dir_from_env() -> Path:
@@ -62,6 +78,39 @@ class CorruptEntry(Exception):
     """A cache entry failed its integrity check (it has been removed)."""
 
 
+class NotACache(ValueError):
+    """A folder given as cache holds no nodegraph cache (no marker file): nothing was deleted."""
+
+
+def _valid_manifest(manifest: Any) -> bool:
+    """True when `manifest` has the shape `store` writes (anything else counts as corrupt)."""
+    if not isinstance(manifest, dict):
+        return False
+    files, ports = manifest.get("files"), manifest.get("ports")
+    if not isinstance(files, dict) or not isinstance(ports, dict):
+        return False
+    for info in files.values():
+        if not (isinstance(info, dict) and isinstance(info.get("size"), int)
+                and isinstance(info.get("sha256"), str)):
+            return False
+    for info in ports.values():
+        if not (isinstance(info, dict) and info.get("file") in files and isinstance(info.get("type"), str)):
+            return False
+    copies = manifest.get("copies", [])
+    return isinstance(copies, list) and all(
+        isinstance(c, dict) and c.get("file") in files and isinstance(c.get("path"), str) for c in copies)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 class Cache:
     """A cache folder (see the module docstring)."""
 
@@ -75,10 +124,11 @@ class Cache:
         return self.root / "objects" / key[:2] / key
 
     # -- queries -------------------------------------------------------------------------
-    def contains(self, key: str) -> bool:
+    def contains(self, key: str, *, verify: bool = False) -> bool:
         """True when a complete entry exists whose files have the sizes its manifest lists.
 
-        (Sizes are checked here, cheaply; contents are checked on `load`.)
+        Sizes are checked here, cheaply; contents are checked on `load`, or here too with
+        `verify=True` (then a corrupt entry is removed and reported absent).
         """
         manifest = self._manifest(key)
         if manifest is None:
@@ -92,16 +142,30 @@ class Cache:
             except FileNotFoundError:
                 self._remove(key)
                 return False
+        if verify:
+            for name, info in manifest["files"].items():
+                try:
+                    ok = file_sha256(folder / name, memo=False) == info["sha256"]
+                except OSError:
+                    ok = False
+                if not ok:
+                    self._remove(key)
+                    return False
         return True
 
     def _manifest(self, key: str) -> dict[str, Any] | None:
+        """The entry's manifest, or None when absent; a malformed one removes the entry."""
         try:
-            return json.loads((self.entry_dir(key) / "manifest.json").read_text())
+            manifest = json.loads((self.entry_dir(key) / "manifest.json").read_text())
         except FileNotFoundError:
             return None
-        except (json.JSONDecodeError, UnicodeDecodeError):
+        except (OSError, ValueError, RecursionError):
             self._remove(key)
             return None
+        if not _valid_manifest(manifest):
+            self._remove(key)
+            return None
+        return manifest
 
     def load(self, key: str) -> dict[str, PortType]:
         """Return the values stored under `key` (read-only arrays).
@@ -140,15 +204,166 @@ class Cache:
         manifest = self._manifest(key)
         return None if manifest is None else manifest.get("description")
 
+    # -- files written by writer nodes ---------------------------------------------------
+    def _written_path(self, key: str) -> Path:
+        return self.root / "written" / key[:2] / f"{key}.json"
+
+    def record_written(self, key: str, files: Files) -> None:
+        """Remember each file a writer wrote under `key`: path as given, absolute path,
+        size, mtime (ns) and sha256 (the one the writer computed from what it wrote)."""
+        items = []
+        for path, sha in zip(files.paths, files.sha256):
+            st = os.stat(path)
+            items.append({"path": path, "abs": os.path.abspath(path), "size": st.st_size,
+                          "mtime_ns": st.st_mtime_ns, "sha256": sha})
+        self._mark()
+        _write_json_atomic(self._written_path(key), items)
+
+    def written_state(self, key: str) -> tuple[str, list[str]]:
+        """Whether a writer's files are still what it wrote under `key`.
+
+        Returns:
+            (state, paths): "intact" (nothing to do), "restorable" (the listed files are missing
+            or differ and the entry keeps copies of all of them) or "stale" (the writer must
+            run again; paths lists what differs, or is empty when nothing was recorded).
+        """
+        try:
+            items = json.loads(self._written_path(key).read_text())
+            if not isinstance(items, list):
+                raise ValueError("not a list")
+        except (OSError, ValueError):
+            return "stale", []
+        changed, touched = [], False
+        for item in items:
+            try:
+                path = item["path"]
+                if os.path.abspath(path) != item["abs"]:
+                    return "stale", [path]  # the same relative path now points elsewhere
+                st = os.stat(path)
+                if st.st_size != item["size"]:
+                    changed.append(path)
+                elif st.st_mtime_ns != item["mtime_ns"]:
+                    if file_sha256(path, memo=False) != item["sha256"]:
+                        changed.append(path)
+                    else:
+                        item["mtime_ns"] = st.st_mtime_ns
+                        touched = True
+            except FileNotFoundError:
+                changed.append(item["path"])
+            except (OSError, KeyError, TypeError):
+                return "stale", []
+        if touched:
+            _write_json_atomic(self._written_path(key), items)
+        if not changed:
+            return "intact", []
+        manifest = self._manifest(key)
+        copied = {c["path"] for c in manifest.get("copies", [])} if manifest else set()
+        return ("restorable" if set(changed) <= copied else "stale"), changed
+
+    def restore_written(self, key: str) -> list[str]:
+        """Rewrite the missing or changed files of a writer's entry from its copies.
+
+        Returns:
+            the paths rewritten.
+        Raises:
+            CorruptEntry: a copy failed its integrity check (the entry was removed).
+            KeyError: no entry, or it keeps no copy of a file that differs.
+        """
+        state, changed = self.written_state(key)
+        if state == "intact":
+            return []
+        manifest = self._manifest(key)
+        if manifest is None or state != "restorable":
+            raise KeyError(key)
+        folder = self.entry_dir(key)
+        copies = {c["path"]: c["file"] for c in manifest.get("copies", [])}
+        items = json.loads(self._written_path(key).read_text())
+        for path in changed:
+            data = (folder / copies[path]).read_bytes()
+            if hashlib.sha256(data).hexdigest() != manifest["files"][copies[path]]["sha256"]:
+                self._remove(key)
+                raise CorruptEntry(f"cache entry {key[:12]}: the copy of '{path}' does not match its manifest")
+            target = Path(path)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+            try:
+                tmp.write_bytes(data)
+                os.replace(tmp, target)
+            finally:
+                tmp.unlink(missing_ok=True)
+            st = os.stat(target)
+            for item in items:
+                if item["path"] == path:
+                    item["size"], item["mtime_ns"] = st.st_size, st.st_mtime_ns
+        _write_json_atomic(self._written_path(key), items)
+        return changed
+
+    # -- input file hashes and code records ----------------------------------------------
+    def file_hash(self, path: str | os.PathLike) -> str:
+        """sha256 of an input file, remembered in the cache by (absolute path, size, mtime).
+
+        A file is read (streamed) once; later runs in any process only `stat` it.
+        """
+        st = os.stat(path)
+        absolute = os.path.abspath(path)
+        memo = self.root / "hashes" / _digest(absolute)[:2] / f"{_digest(absolute)}.json"
+        try:
+            known = json.loads(memo.read_text())
+            if (isinstance(known, dict) and known.get("path") == absolute and known.get("size") == st.st_size
+                    and known.get("mtime_ns") == st.st_mtime_ns and isinstance(known.get("sha256"), str)):
+                return known["sha256"]
+        except (OSError, ValueError):
+            pass
+        sha = file_sha256(path)
+        try:
+            self._mark()
+            _write_json_atomic(memo, {"path": absolute, "size": st.st_size, "mtime_ns": st.st_mtime_ns,
+                                      "sha256": sha})
+        except OSError:
+            pass  # a read-only cache still works; the hash is recomputed next time
+        return sha
+
+    def record_code(self, digest: str, sources: Mapping[str, str]) -> None:
+        """Remember which source files a code hash stands for (for `--explain`)."""
+        path = self.root / "code" / f"{digest}.json"
+        if not path.exists():
+            self._mark()
+            _write_json_atomic(path, dict(sources))
+
+    def code_sources(self, digest: str) -> dict[str, str] | None:
+        try:
+            value = json.loads((self.root / "code" / f"{digest}.json").read_text())
+        except (OSError, ValueError):
+            return None
+        return value if isinstance(value, dict) else None
+
+    def _mark(self) -> None:
+        marker = self.root / MARKER
+        if not marker.exists():
+            self.root.mkdir(parents=True, exist_ok=True)
+            marker.write_text("This folder is a nodegraph cache; `nodegraph cache clear` deletes its entries.\n")
+
+    def is_cache(self) -> bool:
+        """True when the folder carries the cache marker file."""
+        return (self.root / MARKER).is_file()
+
     # -- writing -------------------------------------------------------------------------
-    def store(self, key: str, values: Mapping[str, PortType], description: Mapping[str, Any]) -> None:
-        """Write an entry atomically (temp folder + rename); a concurrent twin is kept."""
+    def store(self, key: str, values: Mapping[str, PortType], description: Mapping[str, Any],
+              copies: list[str] | None = None) -> None:
+        """Write an entry atomically (temp folder + rename); a concurrent twin is kept.
+
+        Args:
+            key, values, description: the entry.
+            copies: paths of files a writer wrote, copied into the entry so that they can be
+                restored without running it again.
+        """
         final = self.entry_dir(key)
         if (final / "manifest.json").exists():
             return
+        self._mark()
         tmp_root = self.root / "tmp"
         tmp_root.mkdir(parents=True, exist_ok=True)
-        tmp = tmp_root / f"{key}.{uuid.uuid4().hex}"
+        tmp = tmp_root / f"{key}.{_HOST}.{os.getpid()}.{uuid.uuid4().hex}"
         tmp.mkdir()
         try:
             files, ports = {}, {}
@@ -159,8 +374,14 @@ class Cache:
                 data = (tmp / name).read_bytes()
                 files[name] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
                 ports[port] = {"file": name, "type": value.type_name}
+            copy_list = []
+            for index, path in enumerate(copies or []):
+                name = f"copy_{index}"
+                shutil.copyfile(path, tmp / name)
+                files[name] = {"size": (tmp / name).stat().st_size, "sha256": file_sha256(tmp / name, memo=False)}
+                copy_list.append({"path": path, "file": name})
             manifest = {"key": key, "created": time.time(), "files": files, "ports": ports,
-                        "description": dict(description)}
+                        "copies": copy_list, "description": dict(description)}
             with open(tmp / "manifest.json", "w") as fh:
                 json.dump(manifest, fh, sort_keys=True)
             final.parent.mkdir(parents=True, exist_ok=True)
@@ -179,7 +400,7 @@ class Cache:
         folder = self.entry_dir(key)
         if not folder.exists():
             return
-        trash = self.root / "tmp" / f"trash.{key}.{uuid.uuid4().hex}"
+        trash = self.root / "tmp" / f"trash-{key}.{_HOST}.{os.getpid()}.{uuid.uuid4().hex}"
         trash.parent.mkdir(parents=True, exist_ok=True)
         try:
             os.rename(folder, trash)
@@ -218,42 +439,102 @@ class Cache:
         out = []
         for manifest in (self.root / "objects").glob("*/*/manifest.json"):
             folder = manifest.parent
-            size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
-            out.append((folder, size, manifest.stat().st_mtime))
+            try:
+                size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+                out.append((folder, size, manifest.stat().st_mtime))
+            except FileNotFoundError:
+                continue  # removed meanwhile by another process
+        return out
+
+    def temp_folders(self) -> list[tuple[Path, int]]:
+        """(folder, bytes) of every temporary folder: entries being written, or left by a
+        writer that died (e.g. `kill -9`)."""
+        out = []
+        for folder in (self.root / "tmp").glob("*"):
+            try:
+                size = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) if folder.is_dir() \
+                    else folder.stat().st_size
+            except FileNotFoundError:
+                continue
+            out.append((folder, size))
         return out
 
     def info(self) -> dict[str, Any]:
         entries = self.entries()
+        temps = self.temp_folders()
         errors = list((self.root / "errors").glob("*/*.json"))
         return {"path": str(self.root), "entries": len(entries),
-                "bytes": int(sum(size for _, size, _ in entries)), "error_records": len(errors)}
+                "bytes": int(sum(size for _, size, _ in entries) + sum(size for _, size in temps)),
+                "temp_folders": len(temps), "temp_bytes": int(sum(size for _, size in temps)),
+                "error_records": len(errors)}
+
+    def _check_is_cache(self, action: str) -> bool:
+        """False when there is nothing (no folder); NotACache when the folder is not a cache."""
+        if not self.root.exists():
+            return False
+        if not self.is_cache():
+            raise NotACache(f"cache {action}: '{self.root}' is not a nodegraph cache folder (no {MARKER} "
+                            "marker file); nothing was deleted")
+        return True
 
     def clear(self) -> None:
-        if self.root.exists():
-            shutil.rmtree(self.root)
+        """Delete every entry and record (only the cache's own subfolders; the marker stays).
+
+        Raises:
+            NotACache: the folder exists but carries no marker file.
+        """
+        if not self._check_is_cache("clear"):
+            return
+        for name in _SUBFOLDERS:
+            folder = self.root / name
+            if folder.is_dir():
+                trash = self.root / f".trash.{name}.{uuid.uuid4().hex}"
+                os.rename(folder, trash)
+                shutil.rmtree(trash, ignore_errors=True)
 
     def gc(self, max_bytes: int) -> tuple[int, int]:
-        """Delete least recently used entries until the total is <= max_bytes.
+        """Delete least recently used entries until the total is <= max_bytes, and the
+        temporary folders of writers that are gone (dead process on this host, or older than
+        an hour).
 
         Returns:
             (entries removed, bytes freed).
+        Raises:
+            NotACache: the folder exists but carries no marker file.
         """
+        if not self._check_is_cache("gc"):
+            return 0, 0
+        removed = freed = 0
+        for folder, size in self.temp_folders():
+            if self._writer_gone(folder):
+                shutil.rmtree(folder, ignore_errors=True) if folder.is_dir() else folder.unlink(missing_ok=True)
+                freed += size
         entries = sorted(self.entries(), key=lambda e: e[2])
         total = sum(size for _, size, _ in entries)
-        removed = freed = 0
         for folder, size, _ in entries:
             if total <= max_bytes:
                 break
-            self._remove(folder.name)
+            key = folder.name
+            self._remove(key)
+            self._written_path(key).unlink(missing_ok=True)
             total -= size
             removed += 1
             freed += size
-        tmp = self.root / "tmp"
-        if tmp.exists():
-            for stale in tmp.iterdir():
-                if time.time() - stale.stat().st_mtime > 3600:
-                    shutil.rmtree(stale, ignore_errors=True)
         return removed, freed
+
+    @staticmethod
+    def _writer_gone(folder: Path) -> bool:
+        parts = folder.name.split(".")
+        if len(parts) >= 4 and parts[-3] == _HOST and parts[-2].isdigit():
+            return not _pid_alive(int(parts[-2]))
+        try:
+            return time.time() - folder.stat().st_mtime > 3600
+        except FileNotFoundError:
+            return False
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _safe(name: str) -> str:

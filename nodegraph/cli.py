@@ -20,19 +20,24 @@ import argparse
 import difflib
 import json
 import sys
+import traceback
 from pathlib import Path
 from typing import Any, Sequence
 
 from . import registry
-from .cache import Cache, cache_dir_from_env
-from .errors import GraphError, NodeError
+from .cache import Cache, NotACache, cache_dir_from_env
+from .errors import GraphError, GraphIssue, NodeError
 from .files import write_text_atomic
 from .graph import Graph
 from .runner import explain, run
 from .schedule import parse_frames
 from .types import Files, JsonValue, PortType, Table
 
-__all__ = ["main"]
+__all__ = ["main", "UsageError"]
+
+
+class UsageError(ValueError):
+    """A malformed command-line value (exit 2)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -41,7 +46,7 @@ def _parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run a graph", add_help=False)
     p.add_argument("graph", nargs="?", help="graph JSON file")
-    p.add_argument("assignments", nargs="*", help="graph parameters as name=value")
+    p.add_argument("assignments", nargs="*", help="graph parameters as name=value (anywhere on the line)")
     p.add_argument("-h", "--help", action="store_true", help="show this help (and the graph's parameters)")
     p.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                    help="set any node parameter")
@@ -58,8 +63,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--explain", action="store_true", help="print cache hit/miss and why per task; run nothing")
     p.add_argument("--progress", choices=["auto", "tty", "json", "none"], default="auto",
                    help="progress display (default: bars on a terminal, JSON lines otherwise)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="torch device of nodes that do not pin one (default auto: CUDA when present)")
 
-    p = sub.add_parser("validate", help="check graph files without running them")
+    p = sub.add_parser("validate", help="check graph files (or every *.json in folders) without running them")
     p.add_argument("graphs", nargs="+")
 
     p = sub.add_parser("nodes", help="list node types, or describe one")
@@ -87,7 +94,7 @@ def _parse_size(text: str) -> int:
     try:
         return int(float(text[: len(text) - len(unit)]) * units[unit])
     except ValueError:
-        raise SystemExit(f"nodegraph: --max-size: expected a size like 500M or 10G, found {text!r}") from None
+        raise UsageError(f"--max-size: expected a size like 500M or 10G, found {text!r}") from None
 
 
 def _split_assignments(items: Sequence[str], what: str) -> dict[str, str]:
@@ -95,7 +102,7 @@ def _split_assignments(items: Sequence[str], what: str) -> dict[str, str]:
     for item in items:
         name, sep, value = item.partition("=")
         if not sep or not name:
-            raise ValueError(f"{what}: expected name=value, found {item!r}")
+            raise UsageError(f"{what}: expected name=value, found {item!r}")
         out[name] = value
     return out
 
@@ -144,7 +151,14 @@ def _cmd_run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         return 0
     graph.apply(_split_assignments(args.assignments, "graph parameter"), strings=True)
     graph.set_strings(_split_assignments(args.set, "--set"))
-    frames = parse_frames(args.frames) if args.frames else None
+    try:
+        frames = parse_frames(args.frames) if args.frames else None
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    if args.chunk < 1:
+        raise UsageError(f"--chunk: expected a number of frames >= 1, found {args.chunk}")
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers: expected >= 1, found {args.workers}")
     cache: Any = False if args.no_cache else (args.cache or None)
     if args.explain:
         rows = explain(graph, frames=frames, chunk=args.chunk, cache=cache, outputs=args.to or None,
@@ -156,11 +170,13 @@ def _cmd_run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         return 0
     progress = None if args.progress == "none" else args.progress
     result = run(graph, frames=frames, chunk=args.chunk, scheduler=args.scheduler, cache=cache,
-                 outputs=args.to or None, force=args.force, progress=progress, workers=args.workers)
+                 outputs=args.to or None, force=args.force, progress=progress, workers=args.workers,
+                 device=args.device)
     for node, ports in result.outputs.items():
         for port, value in ports.items():
             print(f"{node}.{port}: {_describe(value)}")
-    print(result.summary(), file=sys.stderr if result.ok else sys.stdout)
+    sys.stdout.flush()
+    print(result.summary(), file=sys.stderr)
     for failure in result.failures:
         where = failure.get("record", "")
         print(f"  error record: {where}" if where else "", file=sys.stderr)
@@ -181,7 +197,10 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
             doc = (cls.__doc__ or "").strip().splitlines()
             print(f"{name:<{width}}  v{cls.version}  {cls.kind!s:<18} {doc[0] if doc else ''}")
         return 0
-    cls = registry.get(args.name)
+    try:
+        cls = registry.get(args.name)
+    except KeyError as err:
+        raise UsageError(str(err.args[0])) from None
     print(f"{cls.type_name}  (version {cls.version}, {cls.kind}{'' if cls.cacheable else ', not cached'})")
     print((cls.__doc__ or "").strip())
     print("\ninputs:")
@@ -253,9 +272,13 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     store = Cache(args.cache) if args.cache else Cache(cache_dir_from_env())
     if args.action == "info":
         info = store.info()
-        print(f"{info['path']}: {info['entries']} entries, {info['bytes'] / 1e6:.1f} MB, "
+        temps = f", {info['temp_folders']} temporary folders" if info["temp_folders"] else ""
+        print(f"{info['path']}: {info['entries']} entries, {info['bytes'] / 1e6:.1f} MB{temps}, "
               f"{info['error_records']} error records")
     elif args.action == "clear":
+        if not store.root.exists():
+            print(f"{store.root}: no cache here, nothing to clear")
+            return 0
         store.clear()
         print(f"{store.root}: cleared")
     else:
@@ -264,23 +287,74 @@ def _cmd_cache(args: argparse.Namespace) -> int:
     return 0
 
 
+def _graph_files(items: Sequence[str]) -> list[str]:
+    """The files to validate: each argument, or every *.json directly in a folder argument."""
+    out = []
+    for item in items:
+        path = Path(item)
+        if path.is_dir():
+            found = sorted(str(p) for p in path.glob("*.json"))
+            out.extend(found or [item])  # an empty folder is reported as such
+        else:
+            out.append(item)
+    return out
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    bad = 0
+    for path in _graph_files(args.graphs):
+        try:
+            if Path(path).is_dir():
+                raise GraphError([GraphIssue("", "", "the folder holds no *.json graph file")], path)
+            Graph.load(path)
+            print(f"{path}: ok")
+        except GraphError as err:
+            print(str(err), file=sys.stderr)
+            bad += 1
+    return 2 if bad else 0
+
+
+def _split_argv(argv: list[str]) -> list[str]:
+    """Move `name=value` graph parameters given after options to just after the graph file,
+    so that they are accepted anywhere on the `run` command line."""
+    if not argv or argv[0] != "run":
+        return argv
+    takes_value = {"--set", "--frames", "--chunk", "--scheduler", "--workers", "--cache", "--to", "--force",
+                   "--progress", "--device"}
+    head, assignments, rest = [argv[0]], [], []
+    graph_seen = False
+    index = 1
+    while index < len(argv):
+        item = argv[index]
+        if item in takes_value:
+            rest += argv[index:index + 2]
+            index += 2
+            continue
+        if item.startswith("-"):
+            rest.append(item)
+        elif not graph_seen:
+            head.append(item)
+            graph_seen = True
+        else:
+            assignments.append(item)
+        index += 1
+    return head + assignments + rest
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `nodegraph` command; returns the exit code."""
+    """Entry point of the `nodegraph` command; returns the exit code.
+
+    Exit codes: 0 ok; 2 bad graph, parameter, input data or command line (the message names
+    the node, port or file); 1 a node failed, or nodegraph itself failed unexpectedly (with
+    the traceback).
+    """
     parser = _parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_split_argv(list(sys.argv[1:] if argv is None else argv)))
     try:
         if args.command == "run":
             return _cmd_run(args, parser)
         if args.command == "validate":
-            bad = 0
-            for path in args.graphs:
-                try:
-                    Graph.load(path)
-                    print(f"{path}: ok")
-                except GraphError as err:
-                    print(str(err), file=sys.stderr)
-                    bad += 1
-            return 2 if bad else 0
+            return _cmd_validate(args)
         if args.command == "nodes":
             return _cmd_nodes(args)
         if args.command == "show":
@@ -294,12 +368,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except NodeError as err:
         print(f"nodegraph: {err}", file=sys.stderr)
         return 2 if err.bad_input else 1
-    except KeyError as err:
-        print(f"nodegraph: {err.args[0] if err.args else err}", file=sys.stderr)
-        return 2
-    except ValueError as err:
+    except (UsageError, NotACache) as err:
         print(f"nodegraph: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("nodegraph: interrupted", file=sys.stderr)
+        return 130
+    except Exception:  # a bug in nodegraph or a node: say so, with the traceback
+        print("nodegraph: unexpected error (a bug; please report it with this traceback):", file=sys.stderr)
+        traceback.print_exc()
+        return 1
 
 
 if __name__ == "__main__":

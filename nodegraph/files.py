@@ -30,14 +30,23 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
         raise
 
 
-def file_sha256(path: str | os.PathLike) -> str:
-    """sha256 (hex) of a file's bytes, memoized per (path, size, mtime) within the process."""
+def file_sha256(path: str | os.PathLike, *, memo: bool = True) -> str:
+    """sha256 (hex) of a file's bytes, read in 4 MB blocks (never whole into memory).
+
+    Args:
+        path: the file.
+        memo: remember the result per (absolute path, size, mtime) within the process; False
+            hashes what is on disk now (e.g. a file just written, whose size and mtime may
+            equal those of the previous version).
+    """
     st = os.stat(path)
-    memo = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
-    if memo not in _FILE_HASHES:
-        digest = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 22), b""):
-                digest.update(block)
-        _FILE_HASHES[memo] = digest.hexdigest()
-    return _FILE_HASHES[memo]
+    key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
+    if memo and key in _FILE_HASHES:
+        return _FILE_HASHES[key]
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            digest.update(block)
+    if memo:
+        _FILE_HASHES[key] = digest.hexdigest()
+    return digest.hexdigest()

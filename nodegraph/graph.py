@@ -28,15 +28,15 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Literal, NamedTuple
+from typing import Annotated, Any, Iterator, Literal, NamedTuple
 
 import networkx as nx
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from . import registry
 from .errors import GraphError, GraphIssue
 from .files import write_text_atomic
-from .node import Node, format_validation_error
+from .node import Node, _number_problem, format_validation_error, path_params
 
 __all__ = ["SCHEMA", "PortRef", "NodeRef", "NodeSpec", "GraphParameter", "Graph", "parse_value"]
 
@@ -62,11 +62,14 @@ class PortRef(NamedTuple):
 
 @dataclass
 class NodeSpec:
-    """One node of a graph as data: type name, the version its params are written for, params."""
+    """One node of a graph as data: type name, the version its params are written for, params,
+    and optionally its own chunk size and device (overriding the run's)."""
 
     type: str
     type_version: int
     params: dict[str, Any] = field(default_factory=dict)
+    chunk: int | None = None
+    device: Literal["cpu", "cuda", "auto"] | None = None
 
 
 @dataclass
@@ -103,24 +106,26 @@ class NodeRef:
 
 
 class _NodeEntry(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     type: str
-    type_version: int = 1
+    type_version: int = Field(1, ge=1)
     params: dict[str, Any] = {}
+    chunk: int | None = Field(None, ge=1, description="frames per chunk for this node")
+    device: Literal["cpu", "cuda", "auto"] | None = None
 
 
 class _ParameterEntry(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     target: str
     description: str = ""
 
 
 class _GraphFile(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     schema_: Literal["nodegraph/1"]
     description: str = ""
     nodes: dict[str, _NodeEntry]
-    edges: list[tuple[str, str]] = []
+    edges: list[Annotated[list[str], Field(min_length=2, max_length=2)]] = []
     parameters: dict[str, str | _ParameterEntry] = {}
 
 
@@ -131,11 +136,12 @@ def parse_value(node_cls: type[Node], param: str, text: str) -> Any:
     (numbers, lists, booleans).
     """
     annotation = node_cls.Params.model_fields[param].annotation
-    try:
-        TypeAdapter(annotation).validate_python(text)
-        return text
-    except ValidationError:
-        pass
+    if not _number_problem(annotation, text):
+        try:
+            TypeAdapter(annotation).validate_python(text)
+            return text
+        except ValidationError:
+            pass
     try:
         return json.loads(text)
     except json.JSONDecodeError:
@@ -151,10 +157,16 @@ class Graph:
         self.edges: list[tuple[PortRef, PortRef]] = []
         self.parameters: dict[str, GraphParameter] = {}
         self.migrations: list[str] = []
+        self.base_dir: Path | None = None  # relative paths in a graph file resolve against its folder
 
     # -- building ------------------------------------------------------------------------
-    def add(self, type_name: str, id: str | None = None, **params: Any) -> NodeRef:
-        """Add a node of registered type `type_name`; raise GraphError on a bad type or param."""
+    def add(self, type_name: str, id: str | None = None, *, chunk: int | None = None,
+            device: str | None = None, **params: Any) -> NodeRef:
+        """Add a node of registered type `type_name`; raise GraphError on a bad type or param.
+
+        `chunk` (frames per chunk) and `device` ("cpu", "cuda", "auto") override the run's for
+        this node.
+        """
         cls = self._node_class(type_name, id or "?")
         node_id = id or self._fresh_id(cls.type_name.rpartition(".")[2].lower())
         if node_id in self.nodes:
@@ -164,7 +176,11 @@ class Graph:
         issues = _param_issues(node_id, cls, params)
         if issues:
             raise GraphError(issues)
-        self.nodes[node_id] = NodeSpec(type_name, cls.version, dict(params))
+        if chunk is not None and (not isinstance(chunk, int) or isinstance(chunk, bool) or chunk < 1):
+            raise GraphError([GraphIssue(node_id, "chunk", f"expected an integer >= 1, found {chunk!r}")])
+        if device not in (None, "cpu", "cuda", "auto"):
+            raise GraphError([GraphIssue(node_id, "device", f"expected cpu, cuda or auto, found {device!r}")])
+        self.nodes[node_id] = NodeSpec(type_name, cls.version, dict(params), chunk, device)  # type: ignore[arg-type]
         return NodeRef(self, node_id)
 
     def connect(self, src: PortRef | str, dst: PortRef | str) -> None:
@@ -206,6 +222,7 @@ class Graph:
             cls = self._node_class(spec.type, gp.node)
             if strings:
                 value = parse_value(cls, gp.param, value)
+            value = _from_working_folder(cls, gp.param, value)
             merged = {**spec.params, gp.param: value}
             found = _param_issues(gp.node, cls, merged)
             if found:
@@ -227,7 +244,7 @@ class Graph:
             if param not in cls.Params.model_fields:
                 issues.append(GraphIssue(node_id, param, f"unknown parameter; known: {sorted(cls.Params.model_fields)}"))
                 continue
-            value = parse_value(cls, param, text)
+            value = _from_working_folder(cls, param, parse_value(cls, param, text))
             merged = {**self.nodes[node_id].params, param: value}
             found = _param_issues(node_id, cls, merged)
             if found:
@@ -242,13 +259,37 @@ class Graph:
         return registry.get(self.nodes[node_id].type)
 
     def instantiate(self, node_id: str) -> Node:
-        """A Node instance with this graph's params for `node_id`."""
+        """A Node instance with this graph's params for `node_id` (relative file paths written
+        in a graph file resolved against the file's folder)."""
+        return registry.get(self.nodes[node_id].type)(self.resolved_params(node_id), node_id=node_id)
+
+    def resolved_params(self, node_id: str) -> dict[str, Any]:
+        """`node_id`'s params with relative input/output paths joined to `base_dir`."""
         spec = self.nodes[node_id]
-        return registry.get(spec.type)(spec.params, node_id=node_id)
+        params = dict(spec.params)
+        if self.base_dir is None:
+            return params
+        for name in path_params(registry.get(spec.type)):
+            value = params.get(name)
+            if isinstance(value, str) and value and not os.path.isabs(value):
+                params[name] = os.path.normpath(os.path.join(self.base_dir, value))
+        return params
 
     def upstream(self, node_id: str) -> dict[str, PortRef]:
-        """Input port -> the output it is connected to."""
-        return {dst.port: src for src, dst in self.edges if dst.node == node_id}
+        """Input port -> the output it is connected to (the first, for a `many` port)."""
+        out: dict[str, PortRef] = {}
+        for src, dst in self.edges:
+            if dst.node == node_id:
+                out.setdefault(dst.port, src)
+        return out
+
+    def upstream_lists(self, node_id: str) -> dict[str, list[PortRef]]:
+        """Input port -> the outputs connected to it, in edge order (several for a `many` port)."""
+        out: dict[str, list[PortRef]] = {}
+        for src, dst in self.edges:
+            if dst.node == node_id:
+                out.setdefault(dst.port, []).append(src)
+        return out
 
     def downstream(self, node_id: str) -> list[tuple[str, PortRef]]:
         """(output port, destination input) pairs leaving `node_id`."""
@@ -276,6 +317,8 @@ class Graph:
         """Every problem of the graph (empty when valid), each naming node and port."""
         issues: list[GraphIssue] = []
         for node_id, spec in self.nodes.items():
+            if not node_id or "." in node_id:
+                issues.append(GraphIssue(node_id, "", "node ids must be non-empty and contain no '.'"))
             try:
                 cls = registry.get(spec.type)
             except KeyError as err:
@@ -341,7 +384,7 @@ class Graph:
                 if in_port is None:
                     issues.append(GraphIssue(dst.node, dst.port, f"no input port '{dst.port}' on {dst_cls.type_name}; "
                                              f"inputs: {sorted(dst_cls.inputs)}"))
-            if dst in seen:
+            if dst in seen and not (in_port is not None and in_port.many):
                 issues.append(GraphIssue(dst.node, dst.port, f"input connected twice: from '{seen[dst]}' and '{src}'"))
             seen.setdefault(dst, src)
             if out_port is not None and in_port is not None:
@@ -379,8 +422,14 @@ class Graph:
         data: dict[str, Any] = {"schema": SCHEMA}
         if self.description:
             data["description"] = self.description
-        data["nodes"] = {nid: {"type": s.type, "type_version": s.type_version, "params": s.params}
-                         for nid, s in self.nodes.items()}
+        data["nodes"] = {}
+        for nid, s in self.nodes.items():
+            entry: dict[str, Any] = {"type": s.type, "type_version": s.type_version, "params": s.params}
+            if s.chunk is not None:
+                entry["chunk"] = s.chunk
+            if s.device is not None:
+                entry["device"] = s.device
+            data["nodes"][nid] = entry
         data["edges"] = [[str(src), str(dst)] for src, dst in self.edges]
         data["parameters"] = {
             name: ({"target": gp.target, "description": gp.description} if gp.description else gp.target)
@@ -410,6 +459,7 @@ class Graph:
             raise GraphError(issues, source) from None
         graph = cls(parsed.description)
         issues: list[GraphIssue] = []
+        old_versions: dict[str, int] = {}
         for node_id, entry in parsed.nodes.items():
             params = dict(entry.params)
             version = entry.type_version
@@ -422,13 +472,19 @@ class Graph:
                                              f"{version} to {node_cls.version}: {err}"))
                     continue
                 graph.migrations.append(f"{node_id}: {entry.type} v{version} -> v{node_cls.version}")
+                old_versions[node_id] = version
                 version = node_cls.version
-            graph.nodes[node_id] = NodeSpec(entry.type, version, params)
+            graph.nodes[node_id] = NodeSpec(entry.type, version, params, entry.chunk, entry.device)
         for index, (src, dst) in enumerate(parsed.edges):
             try:
-                graph.edges.append((PortRef.parse(src), PortRef.parse(dst)))
+                edge = [PortRef.parse(src), PortRef.parse(dst)]
             except ValueError as err:
                 issues.append(GraphIssue("", f"edges[{index}]", str(err)))
+                continue
+            for end, ref in enumerate(edge):  # ports renamed since the version the file was written for
+                if ref.node in old_versions:
+                    edge[end] = PortRef(ref.node, graph.node_class(ref.node).migrate_port(old_versions[ref.node], ref.port))
+            graph.edges.append((edge[0], edge[1]))
         for name, value in parsed.parameters.items():
             entry = value if isinstance(value, _ParameterEntry) else _ParameterEntry(target=value)
             graph.parameters[name] = GraphParameter(entry.target, entry.description)
@@ -442,18 +498,53 @@ class Graph:
         """Read and validate a graph file."""
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(path.read_bytes(), object_pairs_hook=_no_duplicate_keys,
+                              parse_constant=_no_constant)
         except FileNotFoundError:
             raise GraphError([GraphIssue("", "", f"graph file not found: {path}")], str(path)) from None
-        except json.JSONDecodeError as err:
+        except IsADirectoryError:
+            raise GraphError([GraphIssue("", "", f"expected a graph file, found a folder: {path}")], str(path)) from None
+        except OSError as err:
+            raise GraphError([GraphIssue("", "", f"cannot read graph file: {err}")], str(path)) from None
+        except UnicodeDecodeError as err:
+            raise GraphError([GraphIssue("", "", f"not UTF-8 text: {err}")], str(path)) from None
+        except RecursionError:
+            raise GraphError([GraphIssue("", "", "JSON nested too deeply")], str(path)) from None
+        except ValueError as err:  # JSONDecodeError, duplicate keys, NaN/Infinity
             raise GraphError([GraphIssue("", "", f"not valid JSON: {err}")], str(path)) from None
-        return cls.from_json(data, str(path), migrate=migrate)
+        try:
+            graph = cls.from_json(data, str(path), migrate=migrate)
+        except RecursionError:
+            raise GraphError([GraphIssue("", "", "JSON nested too deeply")], str(path)) from None
+        graph.base_dir = path.resolve().parent
+        return graph
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.nodes)
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Graph) and self.to_json() == other.to_json()
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"duplicate key {key!r} in one JSON object")
+        out[key] = value
+    return out
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _from_working_folder(cls: type[Node], param: str, value: Any) -> Any:
+    """A relative path given on the command line (or from Python) is relative to the working
+    folder: make it absolute so that the graph file's folder does not apply to it."""
+    if param in path_params(cls) and isinstance(value, str) and value and not os.path.isabs(value):
+        return os.path.abspath(value)
+    return value
 
 
 def _param_issues(node_id: str, cls: type[Node], params: dict[str, Any]) -> list[GraphIssue]:

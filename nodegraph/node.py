@@ -28,20 +28,21 @@ from __future__ import annotations
 
 import hashlib
 import inspect
-import sys
+import json
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Mapping
+import types
+from typing import Annotated, Any, Callable, ClassVar, Mapping, Union, get_args, get_origin
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import InputError, NodeError
 from .types import PortType
 
 __all__ = [
     "Kind", "FRAMEWISE", "SEQUENCE", "windowed", "In", "Out", "Node", "NodeParams", "Param",
-    "run_node", "execute", "wrap_error", "format_validation_error",
+    "run_node", "execute", "wrap_error", "format_validation_error", "task_seed", "path_params",
 ]
 
 
@@ -78,17 +79,21 @@ class In:
 
     Args:
         type: the port type class.
-        optional: the input may be left unconnected (the node then receives None).
+        optional: the input may be left unconnected (the node then receives None, or [] for
+            a `many` port).
         per_frame: for per-frame types, False means the port takes the whole value unchunked
             (e.g. a one-frame rest mesh); None follows the type.
+        many: a list port: it takes any number of connections (several edges to the one
+            port in JSON) and the node receives a list of values in the order of the edges.
         doc: one line for `nodegraph nodes`.
     """
 
     def __init__(self, type: type[PortType], *, optional: bool = False,
-                 per_frame: bool | None = None, doc: str = ""):
+                 per_frame: bool | None = None, many: bool = False, doc: str = ""):
         self.type = type
         self.optional = optional
         self.per_frame = type.per_frame if per_frame is None else (per_frame and type.per_frame)
+        self.many = many
         self.doc = doc
         self.name = ""
 
@@ -97,20 +102,86 @@ class In:
 
 
 class Out(In):
-    """Declares an output port (same arguments as `In`, without `optional`)."""
+    """Declares an output port (same arguments as `In`, without `optional` and `many`)."""
 
     def __init__(self, type: type[PortType], *, per_frame: bool | None = None, doc: str = ""):
         super().__init__(type, per_frame=per_frame, doc=doc)
 
 
 class NodeParams(BaseModel):
-    """Base of every node's parameter model: unknown names are errors; values are frozen."""
+    """Base of every node's parameter model.
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Unknown names are errors; values are frozen; floats must be finite; numbers are strict
+    (`true` or "3" is not an integer, `true` or "1.5" is not a float; an integer is a valid
+    float).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _strict_numbers(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for name, value in data.items():
+                info = cls.model_fields.get(name)
+                if info is not None:
+                    problem = _number_problem(info.annotation, value)
+                    if problem:
+                        raise ValueError(f"'{name}': {problem}")
+        return data
+
+
+def _number_kinds(annotation: Any) -> tuple[set[type], Any]:
+    """({int, float} the annotation admits directly, element annotation of a list/tuple)."""
+    origin = get_origin(annotation)
+    if origin is Annotated:
+        return _number_kinds(get_args(annotation)[0])
+    if origin in (Union, types.UnionType):
+        kinds: set[type] = set()
+        element = None
+        for arg in get_args(annotation):
+            k, e = _number_kinds(arg)
+            kinds |= k
+            element = element or e
+        return kinds, element
+    if origin in (list, tuple):
+        args = [a for a in get_args(annotation) if a is not Ellipsis]
+        return set(), (args[0] if args else None)
+    if annotation in (int, float):
+        return {annotation}, None
+    if annotation is bool or annotation is str:
+        return {annotation}, None
+    return set(), None
+
+
+def _number_problem(annotation: Any, value: Any) -> str:
+    """Why `value` is not a strict number for a numeric `annotation` ("" when fine)."""
+    kinds, element = _number_kinds(annotation)
+    numeric = kinds & {int, float}
+    if numeric:
+        want = "an integer" if numeric == {int} else "a number"
+        if isinstance(value, bool) and bool not in kinds:
+            return f"expected {want}, found {value!r}"
+        if isinstance(value, str) and str not in kinds:
+            return f"expected {want}, found the string {value!r}"
+        if numeric == {int} and isinstance(value, float):
+            return f"expected {want}, found {value!r}"
+    if element is not None and isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            problem = _number_problem(element, item)
+            if problem:
+                return f"item {index}: {problem}"
+    return ""
+
+
+def path_params(cls: type["Node"]) -> list[str]:
+    """Names of `cls.Params` fields declared as input or output file paths."""
+    return [name for name in cls.Params.model_fields
+            if _field_flag(cls.Params, name, "input_file", False) or _field_flag(cls.Params, name, "output_file", False)]
 
 
 def Param(default: Any = ..., *, description: str = "", affects_output: bool = True,
-          input_file: bool = False, **constraints: Any) -> Any:
+          input_file: bool = False, output_file: bool = False, **constraints: Any) -> Any:
     """Declare a parameter field.
 
     Args:
@@ -119,10 +190,13 @@ def Param(default: Any = ..., *, description: str = "", affects_output: bool = T
         affects_output: False for parameters that cannot change results (logging, device);
             they are left out of the cache key.
         input_file: the value is a path (or pattern) of a file the node reads; the cache key
-            holds the files' content hash instead of the path.
+            holds the files' content hash instead of the path. A relative path written in a
+            graph file is resolved against the graph file's folder.
+        output_file: the value is a path (or pattern, or folder) the node writes; resolved
+            like `input_file` paths.
         constraints: pydantic bounds (`ge`, `gt`, `le`, `lt`, `min_length`, ...).
     """
-    extra = {"affects_output": affects_output, "input_file": input_file}
+    extra = {"affects_output": affects_output, "input_file": input_file, "output_file": output_file}
     if isinstance(default, (list, dict)):
         value = default
         return Field(default_factory=lambda: type(value)(value), description=description,
@@ -141,6 +215,12 @@ def format_validation_error(err: ValidationError) -> list[tuple[str, str]]:
     for item in err.errors():
         loc = ".".join(str(x) for x in item.get("loc", ())) or "params"
         msg = item.get("msg", "invalid")
+        if loc == "params" and item.get("type") == "value_error":  # NodeParams' own checks
+            text = msg.removeprefix("Value error, ")
+            name, sep, rest = text.partition("': ")
+            if sep and name.startswith("'"):
+                out.append((name[1:], rest))
+                continue
         if item.get("type") == "extra_forbidden":
             msg = "unknown parameter"
         out.append((loc, f"{msg} (found {item.get('input')!r})" if "input" in item and
@@ -155,6 +235,9 @@ class Node:
     version: ClassVar[int] = 1
     kind: ClassVar[Kind] = FRAMEWISE
     cacheable: ClassVar[bool] = True
+    writes_files: ClassVar[bool] = False
+    resources: ClassVar[dict[str, float]] = {}
+    port_renames: ClassVar[dict[int, dict[str, str]]] = {}
     Params: ClassVar[type[NodeParams]] = NodeParams
     inputs: ClassVar[dict[str, In]] = {}
     outputs: ClassVar[dict[str, Out]] = {}
@@ -169,6 +252,13 @@ class Node:
                     outs[name] = value
                 elif isinstance(value, In):
                     ins[name] = value
+        reserved = sorted((set(ins) | set(outs)) & _RESERVED)
+        if reserved:
+            raise TypeError(f"node class {cls.__module__}.{cls.__qualname__}: port name(s) {reserved} shadow "
+                            f"attributes of Node; rename the port(s)")
+        for name, port in outs.items():
+            if port.many:
+                raise TypeError(f"node class {cls.__qualname__}: output '{name}' cannot be many=True")
         cls.inputs, cls.outputs = ins, outs
         if cls.__dict__.get("type_name"):
             from . import registry
@@ -192,7 +282,19 @@ class Node:
         self.params = params
         self.frames: range = range(0)
         self.full_frames: range = range(0)
+        self.seed: int = 0
+        self._device = "cpu"
         self._progress: Callable[[float, str], None] | None = None
+
+    @property
+    def device(self) -> str:
+        """The torch device to compute on: "cpu" or "cuda" (chosen by the runner's `--device`:
+        "auto" means CUDA when torch sees a GPU). Only nodes that use torch should read it."""
+        if self._device == "auto":
+            import torch
+
+            self._device = "cuda" if torch.cuda.is_available() else "cpu"
+        return self._device
 
     # -- hooks a node type may override -----------------------------------------------
     def run(self, **inputs: Any) -> Mapping[str, PortType]:
@@ -208,12 +310,28 @@ class Node:
         """
         return dict(params)
 
+    @classmethod
+    def migrate_port(cls, from_version: int, port: str) -> str:
+        """The current name of a port that graph files written for `from_version` call `port`.
+
+        Default: follows `port_renames` ({version: {old name: new name}}: the renames made
+        when leaving that version), version by version.
+        """
+        for version in range(from_version, cls.version):
+            port = cls.port_renames.get(version, {}).get(port, port)
+        return port
+
     def frame_count(self) -> int | None:
         """For source nodes (no per-frame inputs): how many frames they can produce, or None."""
         return None
 
-    def input_files(self) -> list[Path]:
+    def input_files(self, frames: range | None = None) -> list[Path]:
         """Files this node reads (their contents enter the cache key).
+
+        Args:
+            frames: absolute frames of the chunk being keyed; a framewise source reading one
+                file per frame returns only the files of these frames, so that editing one
+                frame's file recomputes only its chunk. None: all files.
 
         Default: the values of parameters declared with `input_file=True` that exist.
         """
@@ -233,17 +351,29 @@ class Node:
 
     # -- introspection -------------------------------------------------------------------
     @classmethod
+    def code_sources(cls) -> dict[str, str]:
+        """{relative path: sha256} of the node's module and every project module it imports,
+        transitively (found statically, see `nodegraph.codehash`)."""
+        from .codehash import module_sources
+
+        sources = module_sources(cls.__module__)
+        if not sources:  # no file (e.g. defined interactively): the class's own source
+            try:
+                text = inspect.getsource(cls)
+            except (OSError, TypeError):
+                text = f"{cls.__module__}.{cls.__qualname__}"
+            sources = {f"<{cls.__module__}.{cls.__qualname__}>": hashlib.sha256(text.encode()).hexdigest()}
+        return sources
+
+    @classmethod
     def code_hash(cls) -> str:
-        """sha256 of the source of the module defining the node (part of the cache key)."""
+        """sha256 over `code_sources()` (part of the cache key); computed once per process."""
         cached = cls.__dict__.get("_code_hash")
         if cached:
             return cached
-        module = sys.modules.get(cls.__module__)
-        try:
-            source = inspect.getsource(module) if module else inspect.getsource(cls)
-        except (OSError, TypeError):
-            source = f"{cls.__module__}.{cls.__qualname__}"
-        digest = hashlib.sha256(source.encode()).hexdigest()
+        from .codehash import source_digest
+
+        digest = source_digest(cls.code_sources())
         cls._code_hash = digest
         return digest
 
@@ -261,6 +391,15 @@ class Node:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(node_id={self.node_id!r}, params={self.params!r})"
+
+
+_RESERVED = frozenset(name for name in dir(Node) if not name.startswith("__")) | {
+    "node_id", "params", "frames", "full_frames", "seed", "device"}
+
+
+def task_seed(key: str) -> int:
+    """A 63-bit seed derived from a task's cache key: the same in every process and machine."""
+    return int(hashlib.sha256(f"seed:{key}".encode()).hexdigest()[:16], 16) >> 1
 
 
 def _where(node: Node, chunk: range) -> tuple[int, int] | None:
@@ -301,7 +440,8 @@ def wrap_error(node: Node, err: Exception, frames: tuple[int, int] | None = None
 
 
 def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: range,
-            progress: Callable[[float, str], None] | None = None) -> dict[str, PortType]:
+            progress: Callable[[float, str], None] | None = None, *, seed: int | None = None,
+            device: str = "cpu") -> dict[str, PortType]:
     """Run `node` on values covering `frames`, checking inputs and outputs.
 
     Args:
@@ -310,6 +450,9 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
         frames: absolute frame range of the per-frame inputs and outputs.
         full_frames: the range of the whole run.
         progress: optional callback (fraction, message).
+        seed: the node's `self.seed` (the runner derives it from the task's key); None: from
+            the node's type and key parameters.
+        device: "cpu", "cuda" or "auto", the node's `self.device`.
     Returns:
         port name -> value.
     Raises:
@@ -319,6 +462,18 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
     count = len(frames)
     for name, port in node.inputs.items():
         value = inputs.get(name)
+        if port.many:
+            value = [] if value is None else value
+            if not isinstance(value, (list, tuple)):
+                raise NodeError(node.node_id, node.type_name, f"input expected a list of {port.type.type_name}, "
+                                f"found {type(value).__name__}", port=name, frames=_where(node, frames),
+                                bad_input=True)
+            if not value and not port.optional:
+                raise NodeError(node.node_id, node.type_name, "required input is missing (no connection)",
+                                port=name, frames=_where(node, frames), bad_input=True)
+            for item in value:
+                _check_value(node, port, item, count, "input", frames)
+            continue
         if value is None:
             if not port.optional:
                 raise NodeError(node.node_id, node.type_name, "required input is missing",
@@ -330,8 +485,12 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
         raise NodeError(node.node_id, node.type_name, f"unknown input(s) {sorted(unknown)}; "
                         f"inputs are {sorted(node.inputs)}", bad_input=True)
     node.frames, node.full_frames, node._progress = frames, full_frames, progress
+    node.seed = task_seed(json.dumps([node.type_name, node.key_params(), frames.start, frames.stop],
+                                     sort_keys=True)) if seed is None else int(seed)
+    node._device = device
     try:
-        result = node.run(**{name: inputs.get(name) for name in node.inputs})
+        result = node.run(**{name: (list(inputs.get(name) or []) if port.many else inputs.get(name))
+                             for name, port in node.inputs.items()})
     except Exception as err:
         raise wrap_error(node, err, _where(node, frames)) from err
     finally:

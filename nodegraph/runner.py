@@ -8,23 +8,26 @@ failed chunk (node id, frames, exception, traceback, input keys) and ends non-ze
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import sys
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping
 
-from .cache import Cache, CorruptEntry, cache_dir_from_env
+from .cache import COPY_LIMIT, Cache, CorruptEntry, cache_dir_from_env
 from .errors import NodeError
 from .graph import Graph
-from .node import Node, execute, format_exception
+from .node import Node, execute, format_exception, task_seed
 from .schedule import Plan, TaskPlan, explain_miss, plan_run
-from .types import PortType
+from .types import Files, PortType
 
 __all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "SCHEDULERS"]
 
 SCHEDULERS = ("sync", "threads", "processes")
+_OK = ("executed", "cached", "restored")
 
 
 @dataclass(frozen=True)
@@ -44,6 +47,9 @@ class TaskSpec:
     cache_root: str | None
     cacheable: bool
     progress: str
+    writes: bool = False
+    restore: bool = False
+    device: str = "cpu"
 
 
 @dataclass
@@ -53,7 +59,7 @@ class TaskResult:
     name: str
     node: str
     frames: tuple[int, int]
-    status: str  # executed | cached | failed | skipped | corrupt
+    status: str  # executed | cached | restored | failed | skipped | corrupt
     values: dict[str, PortType] | None = None
     error: dict[str, Any] | None = None
     seconds: float = 0.0
@@ -102,21 +108,29 @@ def _combine(parts: list[PortType], per_frame: bool) -> PortType:
 def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
     """Run one task on its upstream results (dask calls this in a worker)."""
     start = time.perf_counter()
-    bad = [d for d in deps if d.status not in ("executed", "cached")]
+    bad = [d for d in deps if d.status not in _OK]
     if bad:
         return TaskResult(spec.name, spec.node, spec.out_frames, "skipped",
                           error={"cause": f"upstream {bad[0].name} {bad[0].status}"})
+    if spec.progress == "json" and warnings.showwarning is not _json_warning \
+            and multiprocessing.current_process().name != "MainProcess":
+        warnings.showwarning = _json_warning  # a worker process: its stderr is the farm log too
     node = None
     try:
         node = spec.node_cls(spec.params, node_id=spec.node)
-        inputs: dict[str, PortType] = {}
+        inputs: dict[str, Any] = {}
         for port, pieces in spec.inputs:
             parts = []
             for dep_index, out_port, lo, hi in pieces:
                 value = deps[dep_index].values[out_port]
                 parts.append(value if lo < 0 else value.slice_frames(lo, hi))
-            inputs[port] = _combine(parts, pieces[0][2] >= 0)
-        values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec))
+            name, many, _ = port.partition("#")
+            if many:  # a list port: one value per connection, in edge order ("port#0", "port#1", ...)
+                inputs.setdefault(name, []).append(_combine(parts, pieces[0][2] >= 0))
+            else:
+                inputs[name] = _combine(parts, pieces[0][2] >= 0)
+        values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec),
+                         seed=task_seed(spec.key), device=spec.device)
         values = _trim(node, values, spec.frames, spec.out_frames)
     except Exception as err:
         error = err if isinstance(err, NodeError) else NodeError(
@@ -134,22 +148,44 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
         return TaskResult(spec.name, spec.node, spec.out_frames, "failed", error=record,
                           seconds=time.perf_counter() - start)
     if spec.cacheable and spec.cache_root is not None:
+        store = Cache(spec.cache_root)
+        written = _written_files(values) if spec.writes else None
         try:
-            Cache(spec.cache_root).store(spec.key, values, spec.description)
+            copies = None
+            if written is not None:
+                sizes = [os.stat(path).st_size for path in written.paths]
+                copies = list(written.paths) if sum(sizes) <= COPY_LIMIT else None
+            store.store(spec.key, values, spec.description, copies=copies)
+            if written is not None:
+                store.record_written(spec.key, written)
         except OSError as err:
-            print(f"warning: could not cache {spec.name}: {err}", file=sys.stderr)
+            warnings.warn(f"could not cache {spec.name}: {err}", RuntimeWarning)
     return TaskResult(spec.name, spec.node, spec.out_frames, "executed", values,
                       seconds=time.perf_counter() - start)
 
 
+def _written_files(values: Mapping[str, PortType]) -> Files | None:
+    """The Files a writer's outputs list (several Files ports are joined)."""
+    parts = [v for v in values.values() if isinstance(v, Files)]
+    return Files.merge_chunks(parts) if parts else None
+
+
 def load_task(spec: TaskSpec) -> TaskResult:
-    """Read a task's values from the cache (dask calls this in a worker)."""
+    """Read a task's values from the cache, rewriting a writer's changed files from the
+    entry's copies first when planned so (dask calls this in a worker)."""
     start = time.perf_counter()
+    store = Cache(spec.cache_root)
+    status = "cached"
     try:
-        values = Cache(spec.cache_root).load(spec.key)
+        if spec.restore:
+            status = "restored" if store.restore_written(spec.key) else "cached"
+        values = store.load(spec.key)
     except (CorruptEntry, KeyError) as err:
         return TaskResult(spec.name, spec.node, spec.out_frames, "corrupt", error={"cause": str(err)})
-    return TaskResult(spec.name, spec.node, spec.out_frames, "cached", values,
+    except OSError as err:
+        return TaskResult(spec.name, spec.node, spec.out_frames, "corrupt",
+                          error={"cause": f"cannot restore written files: {err}"})
+    return TaskResult(spec.name, spec.node, spec.out_frames, status, values,
                       seconds=time.perf_counter() - start)
 
 
@@ -193,7 +229,8 @@ class RunResult:
         return 1
 
     def summary(self) -> str:
-        lines = [f"{len(self.tasks)} tasks: {self.executed()} executed, {self.count('cached')} cached, "
+        restored = f", {self.count('restored')} restored" if self.count("restored") else ""
+        lines = [f"{len(self.tasks)} tasks: {self.executed()} executed, {self.count('cached')} cached{restored}, "
                  f"{self.count('failed')} failed, {self.count('skipped')} skipped ({self.seconds:.2f} s)"]
         for f in self.failures:
             lines.append(f"FAILED {f['message']}")
@@ -255,9 +292,10 @@ def _specs(plan: Plan, names: list[str], cache: Cache | None, progress: str) -> 
         inputs = tuple((port, tuple((deps.index(p.task), p.port, p.start, p.stop) for p in pieces))
                        for port, pieces in task.inputs.items())
         specs[name] = TaskSpec(name, task.node, type(plan.nodes[task.node]),
-                               dict(plan.graph.nodes[task.node].params), task.frames, task.out_frames, full,
+                               plan.graph.resolved_params(task.node), task.frames, task.out_frames, full,
                                inputs, task.key, task.description,
-                               str(cache.root) if cache is not None else None, task.cacheable, progress)
+                               str(cache.root) if cache is not None else None, task.cacheable, progress,
+                               writes=task.writes, restore=task.restore, device=task.device)
     return specs
 
 
@@ -274,7 +312,8 @@ def _dask_graph(plan: Plan, names: list[str], specs: dict[str, TaskSpec]) -> dic
 
 
 def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], scheduler: Any,
-             reporter: _Reporter, workers: int | None) -> tuple[list[dict], list[TaskResult]]:
+             reporter: _Reporter, workers: int | None,
+             resources: Mapping[str, dict[str, float]] | None = None) -> tuple[list[dict], list[TaskResult]]:
     keys = meta_keys + value_keys
     if isinstance(scheduler, str) and scheduler in SCHEDULERS:
         import dask.local
@@ -303,7 +342,14 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
 
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
     try:
-        futures = client.get(dsk, keys, sync=False)
+        offered: set[str] = set()
+        for worker in client.scheduler_info().get("workers", {}).values():
+            offered |= set(worker.get("resources") or {})
+        # Only ask for resources some worker offers, else the tasks would wait forever.
+        wanted = {key: {r: amount for r, amount in res.items() if r in offered}
+                  for key, res in (resources or {}).items()}
+        wanted = {key: res for key, res in wanted.items() if res}
+        futures = client.get(dsk, keys, sync=False, resources=wanted or None)
         metas_f, values_f = futures[: len(meta_keys)], futures[len(meta_keys):]
         for future in as_completed(metas_f):
             reporter.update(future.result())
@@ -337,7 +383,7 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
         scheduler: Any = "threads", cache: Cache | str | os.PathLike | bool | None = None,
         outputs: Iterable[str] | None = None, force: Iterable[str] = (),
         progress: str | bool | None = None, workers: int | None = None,
-        parameters: Mapping[str, Any] | None = None) -> RunResult:
+        parameters: Mapping[str, Any] | None = None, device: str = "auto") -> RunResult:
     """Run a graph and return the outputs of its target nodes.
 
     Args:
@@ -353,6 +399,11 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
         progress: "tty", "json", "auto" (tty when stderr is a terminal) or None (quiet).
         workers: number of workers for the local thread/process pools.
         parameters: graph parameters by name (e.g. {"capture": "shot.npz"}).
+        device: "auto" (CUDA where the worker's torch sees a GPU), "cpu" or "cuda": the
+            `self.device` of nodes whose graph entry does not pin one. On a dask.distributed
+            cluster, tasks of nodes declaring `resources = {"gpu": 1}` are sent only to
+            workers started with `--resources gpu=1` (one at a time per GPU) when the cluster
+            has such workers and the device is not "cpu".
     Returns:
         RunResult: `outputs[node][port]`, task records, failures, `exit_code`.
     Raises:
@@ -363,18 +414,30 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
         graph = Graph.load(graph)
     if parameters:
         graph.apply(dict(parameters))
+    if device not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device: expected auto, cpu or cuda, found {device!r}")
     store = _resolve_cache(cache)
     mode = _progress_mode(progress)
     started = time.perf_counter()
+    with _warnings_as_events(mode):
+        return _run(graph, frames, chunk, scheduler, store, outputs, force, mode, workers, device, started)
+
+
+def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: Cache | None,
+         outputs: Iterable[str] | None, force: Iterable[str], mode: str, workers: int | None, device: str,
+         started: float) -> RunResult:
     for attempt in range(2):
         plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
-                        force=force)
+                        force=force, device=device)
         names = plan.needed()
         specs = _specs(plan, names, store, mode)
         dsk = _dask_graph(plan, names, specs)
         value_names = [t for node in plan.targets for t in plan.by_node[node]]
         reporter = _Reporter(plan, names, mode)
-        metas, results = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter, workers)
+        gpu_tasks = {n for n in names if not plan.tasks[n].hit and plan.tasks[n].device != "cpu"
+                     and plan.nodes[plan.tasks[n].node].resources}
+        metas, results = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter, workers,
+                                  {n: dict(plan.nodes[plan.tasks[n].node].resources) for n in gpu_tasks})
         if any(m["status"] == "corrupt" for m in metas) and attempt == 0:
             reporter.close(RunResult({}, metas, plan))
             continue  # corrupt entries were removed: plan again, they are now misses
@@ -383,7 +446,7 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
     out: dict[str, dict[str, PortType]] = {}
     for node in plan.targets:
         parts = [by_name[name] for name in plan.by_node[node]]
-        if any(p.status not in ("executed", "cached") for p in parts):
+        if any(p.status not in _OK for p in parts):
             continue
         out[node] = {}
         for port, decl in plan.nodes[node].outputs.items():
@@ -393,6 +456,30 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
     _record(plan, metas, store)
     reporter.close(result)
     return result
+
+
+class _warnings_as_events:
+    """In JSON-lines progress mode, print warnings as {"event": "warning"} lines on stderr
+    (so that every stderr line of a farm log is JSON); otherwise leave them alone."""
+
+    def __init__(self, mode: str):
+        self.mode = mode
+        self.saved: Any = None
+
+    def __enter__(self) -> None:
+        if self.mode == "json":
+            self.saved = warnings.showwarning
+            warnings.showwarning = _json_warning
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.saved is not None:
+            warnings.showwarning = self.saved
+
+
+def _json_warning(message: Any, category: type, filename: str, lineno: int, file: Any = None,
+                  line: str | None = None) -> None:
+    print(json.dumps({"event": "warning", "category": category.__name__, "message": str(message),
+                      "where": f"{os.path.basename(filename)}:{lineno}"}), file=sys.stderr, flush=True)
 
 
 def _record(plan: Plan, metas: list[dict[str, Any]], store: Cache | None) -> None:
@@ -405,7 +492,7 @@ def _record(plan: Plan, metas: list[dict[str, Any]], store: Cache | None) -> Non
         frames = tuple(meta["frames"]) if task.mode != "static" else None
         if meta["status"] == "failed":
             meta["error"]["record"] = str(store.write_error(meta["error"]))
-        elif meta["status"] in ("executed", "cached"):
+        elif meta["status"] in _OK:
             store.clear_error(task.node, frames if task.mode == "chunk" else None)
             by_node.setdefault(task.node, store.read_last(task.node))[task.name] = task.description
     for node, descriptions in by_node.items():
@@ -423,17 +510,20 @@ def explain(graph: Graph, *, frames: range | None = None, chunk: int = 64,
     store = _resolve_cache(cache)
     plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
                     force=force)
+    plan.verify = True  # read every entry's bytes: a corrupt entry is a miss here too
     rows = []
     last_by_node: dict[str, dict[str, Any]] = {}
     for name in plan.needed():
         task: TaskPlan = plan.tasks[name]
-        if task.hit:
+        if task.hit and task.restore:
+            reason = "cached; will rewrite from the cache: " + ", ".join(task.stale_files)
+        elif task.hit:
             reason = "cached"
         elif store is None:
             reason = "no cache"
         else:
             last = last_by_node.setdefault(task.node, store.read_last(task.node))
-            reason = explain_miss(task, last.get(name) or _same_node_other_chunk(last, task))
+            reason = explain_miss(task, last.get(name) or _same_node_other_chunk(last, task), store)
         rows.append({"node": task.node, "task": name, "frames": list(task.out_frames), "hit": task.hit,
                      "reason": reason})
     return rows

@@ -13,6 +13,7 @@ Each node runs in one of three modes:
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
@@ -50,8 +51,12 @@ class TaskPlan:
     key: str
     description: dict[str, Any]
     cacheable: bool
+    writes: bool = False
+    device: str = "cpu"
     hit: bool = False
     forced: bool = False
+    restore: bool = False  # a writer whose changed files are rewritten from the entry's copies
+    stale_files: list[str] = field(default_factory=list)
 
     @property
     def deps(self) -> list[str]:
@@ -74,6 +79,7 @@ class Plan:
     nodes: dict[str, Node] = field(default_factory=dict)
     targets: list[str] = field(default_factory=list)
     cache: Cache | None = None
+    verify: bool = False  # check entries' contents (sha256), not only their sizes
 
     def needed(self) -> list[str]:
         """Tasks to schedule: the targets' tasks and, below each miss, what it consumes.
@@ -89,7 +95,11 @@ class Plan:
             need[name] = None
             task = self.tasks[name]
             task.hit = bool(self.cache is not None and task.cacheable and not task.forced
-                            and self.cache.contains(task.key))
+                            and self.cache.contains(task.key, verify=self.verify))
+            if task.hit and task.writes:
+                state, task.stale_files = self.cache.written_state(task.key)  # type: ignore[union-attr]
+                task.hit = state != "stale"
+                task.restore = state == "restorable"
             if not task.hit:
                 stack.extend(task.deps)
         return [name for name in self.tasks if name in need]
@@ -124,6 +134,7 @@ def chunk_bounds(frames: range, chunk: int) -> list[tuple[int, int]]:
 
 
 def _mode(node: Node, connected: Iterable[str]) -> str:
+    """"static", "sequence" or "chunk" (see the module docstring)."""
     per_frame_in = any(node.inputs[p].per_frame for p in connected)
     per_frame_out = any(o.per_frame for o in node.outputs.values())
     if not per_frame_in and not per_frame_out:
@@ -133,13 +144,15 @@ def _mode(node: Node, connected: Iterable[str]) -> str:
 
 def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
              cache: Cache | None = None, targets: list[str] | None = None,
-             force: Iterable[str] = ()) -> Plan:
+             force: Iterable[str] = (), device: str = "cpu") -> Plan:
     """Turn a validated graph into tasks with cache keys.
 
     Args:
         graph: the graph (validated here).
         frames: frames to compute; default: what the source nodes can produce.
-        chunk: frames per chunk for framewise and windowed nodes.
+        chunk: frames per chunk for framewise and windowed nodes (a node's own `chunk` in
+            the graph overrides it).
+        device: "cpu", "cuda" or "auto" for nodes that do not pin their own.
         cache: where hits are looked up (None: no cache, everything runs).
         targets: node ids whose outputs are wanted (default: the sinks).
         force: node ids to recompute even when cached (with their descendants).
@@ -150,7 +163,7 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
     graph.check()
     order = graph.topological_order()
     nodes = {nid: graph.instantiate(nid) for nid in order}
-    ups = {nid: graph.upstream(nid) for nid in order}
+    ups = {nid: graph.upstream_lists(nid) for nid in order}
     modes = {nid: _mode(nodes[nid], ups[nid]) for nid in order}
     issues = []
     for nid in order:
@@ -196,42 +209,67 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         forced |= graph.descendants(nid)
 
     plan = Plan(graph, frames, chunk, nodes=nodes, targets=targets, cache=cache)
-    bounds = chunk_bounds(frames, chunk)
     full = (frames.start, frames.stop)
+    hash_file = cache.file_hash if cache is not None else file_sha256
     for nid in order:
-        node, mode = nodes[nid], modes[nid]
+        node, mode, spec = nodes[nid], modes[nid], graph.nodes[nid]
         cls = type(node)
-        try:
-            files = [file_sha256(path) for path in node.input_files()]
-        except Exception as err:
-            raise wrap_error(node, err, bad_input=True) from err
-        base = {"type": cls.type_name, "version": cls.version, "code": cls.code_hash(),
-                "params": node.key_params(), "files": files}
+        code = cls.code_hash()
+        if cache is not None:
+            try:
+                cache.record_code(code, cls.code_sources())
+            except OSError:
+                pass  # only --explain's detail depends on it
+        base = {"type": cls.type_name, "version": cls.version, "code": code, "params": node.key_params()}
         if mode == "static":
             spans = [(None, None)]
         elif mode == "sequence":
             spans = [(full, full)]
         else:
             halo = node.kind.halo
-            spans = [((max(full[0], s - halo), min(full[1], e + halo)), (s, e)) for s, e in bounds]
+            spans = [((max(full[0], s - halo), min(full[1], e + halo)), (s, e))
+                     for s, e in chunk_bounds(frames, spec.chunk or chunk)]
+        all_files: list[str] | None = None
         names = []
         for span, out in spans:
+            try:
+                if mode == "chunk" and _takes_frames(node):
+                    files = [hash_file(path) for path in node.input_files(range(*span))]
+                else:
+                    if all_files is None:
+                        all_files = [hash_file(path) for path in node.input_files()]
+                    files = all_files
+            except Exception as err:
+                raise wrap_error(node, err, bad_input=True) from err
             inputs: dict[str, list[Piece]] = {}
-            for port, src in ups[nid].items():
-                inputs[port] = _pieces(plan, src.node, src.port, span if node.inputs[port].per_frame else None)
+            for port, sources in ups[nid].items():
+                decl = node.inputs[port]
+                for index, src in enumerate(sources):
+                    name = f"{port}#{index}" if decl.many else port
+                    inputs[name] = _pieces(plan, src.node, src.port, span if decl.per_frame else None)
             description = dict(base)
+            description["files"] = files
             description["inputs"] = {port: [[plan.tasks[p.task].key, p.port, p.start, p.stop] for p in pieces]
                                      for port, pieces in sorted(inputs.items())}
             description["frames"] = list(span) if span else None
             description["out"] = list(out) if out else None
             name = f"{nid}|all" if out is None else f"{nid}|{out[0]}:{out[1]}"
             task = TaskPlan(name, nid, cls.type_name, mode, span or full, out or full, inputs,
-                            make_key(description), description, cls.cacheable)
+                            make_key(description), description, cls.cacheable, writes=cls.writes_files,
+                            device=spec.device or device)
             task.forced = nid in forced
             plan.tasks[name] = task
             names.append(name)
         plan.by_node[nid] = names
     return plan
+
+
+def _takes_frames(node: Node) -> bool:
+    """Whether the node's `input_files` accepts the chunk's frames (older plugins may not)."""
+    try:
+        return "frames" in inspect.signature(node.input_files).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _pieces(plan: Plan, node_id: str, port: str, span: tuple[int, int] | None) -> list[Piece]:
@@ -252,12 +290,15 @@ def _pieces(plan: Plan, node_id: str, port: str, span: tuple[int, int] | None) -
     return pieces
 
 
-def explain_miss(task: TaskPlan, last: dict[str, Any] | None) -> str:
-    """Why `task` is not a cache hit, comparing its key description with the last run's."""
+def explain_miss(task: TaskPlan, last: dict[str, Any] | None, cache: Cache | None = None) -> str:
+    """Why `task` is not a cache hit, comparing its key description with the last run's.
+
+    With `cache`, a code change names the source files that changed.
+    """
     if task.forced:
         return "forced"
     if not task.cacheable:
-        return "not cacheable (writes files): always runs"
+        return "not cacheable: always runs"
     if last is None:
         return "new: never computed with these frames"
     now = task.description
@@ -267,7 +308,7 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None) -> str:
     if last.get("version") != now["version"]:
         reasons.append(f"node version changed ({last.get('version')} -> {now['version']})")
     if last.get("code") != now["code"]:
-        reasons.append("code changed")
+        reasons.append(_code_change(last.get("code"), now["code"], cache))
     old_params, new_params = last.get("params", {}), now["params"]
     for name in sorted(set(old_params) | set(new_params)):
         if old_params.get(name) != new_params.get(name):
@@ -277,7 +318,20 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None) -> str:
     old_inputs, new_inputs = last.get("inputs", {}), now["inputs"]
     for port in sorted(set(old_inputs) | set(new_inputs)):
         if old_inputs.get(port) != new_inputs.get(port):
-            reasons.append(f"upstream '{port}' changed")
+            reasons.append(f"upstream '{port.partition('#')[0]}' changed")
     if last.get("frames") != now["frames"] and not reasons:
         reasons.append(f"frames changed ({last.get('frames')} -> {now['frames']})")
+    if not reasons and task.writes and task.stale_files:
+        return "written files missing or changed: " + ", ".join(task.stale_files)
+    if not reasons and task.writes:
+        return "written files not recorded (written by an older nodegraph, or the record was lost)"
     return "; ".join(reasons) if reasons else "entry missing from the cache (evicted or corrupt)"
+
+
+def _code_change(old: Any, new: str, cache: Cache | None) -> str:
+    before = cache.code_sources(old) if cache is not None and isinstance(old, str) else None
+    after = cache.code_sources(new) if cache is not None else None
+    if before is None or after is None:
+        return "code changed"
+    changed = sorted(path for path in set(before) | set(after) if before.get(path) != after.get(path))
+    return "code changed: " + ", ".join(changed) if changed else "code changed"

@@ -499,10 +499,10 @@ class SaveMeshSequence(Node):
     type_name = "io.SaveMeshSequence"
     version = 1
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        path: str = Param(..., description="Destination: .npz, .usd/.usda/.usdc, or a numbered "
+        path: str = Param(..., output_file=True, description="Destination: .npz, .usd/.usda/.usdc, or a numbered "
                           "OBJ/PLY pattern (face.%04d.obj).")
         first_frame: int = Param(0, description="Numbered files: file number of run frame 0.")
         prim: str = Param("/mesh", description="USD only: path of the Mesh prim written.")
@@ -525,10 +525,10 @@ class SaveMeshFrames(Node):
     type_name = "io.SaveMeshFrames"
     version = 1
     kind = FRAMEWISE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        path: str = Param(..., description="Numbered OBJ/PLY pattern (face.%04d.obj, "
+        path: str = Param(..., output_file=True, description="Numbered OBJ/PLY pattern (face.%04d.obj, "
                           "face.####.ply, face.{frame:04d}.obj).")
         first_frame: int = Param(0, description="File number of run frame 0.")
 

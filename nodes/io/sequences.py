@@ -291,7 +291,7 @@ class _LoadParams(NodeParams):
 
 
 class _SaveParams(NodeParams):
-    path: str = Param(..., description="Destination .json or .npz file.")
+    path: str = Param(..., output_file=True, description="Destination .json or .npz file.")
 
 
 class _SequenceLoader(Node):
@@ -315,10 +315,10 @@ class _SequenceLoader(Node):
 
 
 class _SequenceSaver(Node):
-    """What the rigid and parameter savers share: one output file, written whole, not cached."""
+    """What the rigid and parameter savers share: one output file, written whole."""
 
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
     Params = _SaveParams
 
     files = Out(Files, doc="The written file and its sha256.")
@@ -354,23 +354,25 @@ class LoadParamSequence(_SequenceLoader):
     """Read named parameter curves (JSON or NPZ)."""
 
     type_name = "io.LoadParamSequence"
-    version = 1
+    version = 2
+    port_renames = {1: {"params": "sequence"}}  # v1's port name shadowed Node.params
     load = staticmethod(load_param_sequence)
 
-    params = Out(ParamSequence, doc="Values (F, K) float32 with K names.")
+    sequence = Out(ParamSequence, doc="Values (F, K) float32 with K names.")
 
     def run(self) -> dict[str, ParamSequence]:
-        return {"params": self.load(self.params.path, self.frames)}
+        return {"sequence": self.load(self.params.path, self.frames)}
 
 
 class SaveParamSequence(_SequenceSaver):
     """Write named parameter curves as JSON or NPZ."""
 
     type_name = "io.SaveParamSequence"
-    version = 1
+    version = 2
+    port_renames = {1: {"params": "sequence"}}  # v1's port name shadowed Node.params
 
-    params = In(ParamSequence, doc="Parameter curves to write.")
+    sequence = In(ParamSequence, doc="Parameter curves to write.")
 
-    def run(self, params: ParamSequence) -> dict[str, Files]:
-        save_param_sequence(self.params.path, params)
+    def run(self, sequence: ParamSequence) -> dict[str, Files]:
+        save_param_sequence(self.params.path, sequence)
         return {"files": files_value([self.params.path])}

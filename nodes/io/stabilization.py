@@ -36,10 +36,10 @@ class SaveStabilization(Node):
     type_name = "io.SaveStabilization"
     version = 1
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        path: str = Param("out/stabilized.npz", description="Output .npz (keys rigid, vertices, faces, fps).")
+        path: str = Param("out/stabilized.npz", output_file=True, description="Output .npz (keys rigid, vertices, faces, fps).")
 
     rigid = In(RigidSequence, doc="Skull-to-world transforms, world = rigid @ skull.")
     mesh = In(MeshSequence, doc="Stabilized mesh (skull frame), cm.")

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 
 from ..io._files import atomic_path, files_value
-from ..rigid.kabsch import apply_rigid, invert_rigid
+from ..geometry.rigid import apply_rigid, invert_rigid
 
 __all__ = [
     "rigid_to_euler_translation", "stabilize_points", "default_vertices",
@@ -216,10 +216,10 @@ class CaptureReport(Node):
     type_name = "report.CaptureReport"
     version = 1
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        folder: str = Param("report", description="output folder (created if missing)")
+        folder: str = Param("report", output_file=True, description="output folder (created if missing)")
         vertices: list[int] = Param([], description="vertices for the histograms; [] = 4 evenly "
                                                     "spaced")
 

@@ -48,10 +48,10 @@ class StabilizationReport(Node):
     type_name = "report.StabilizationReport"
     version = 1
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        folder: str = Param("out/report", description="Output folder (created).")
+        folder: str = Param("out/report", output_file=True, description="Output folder (created).")
         labels: list[str] = Param(["estimate_1", "estimate_2", "estimate_3", "estimate_4"],
                                   description="Names of estimate_1..estimate_4 in the table and plots.")
         histogram_vertices: list[int] = Param([], description="Vertices shown in histograms.png; empty = 4 "

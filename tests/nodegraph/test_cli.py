@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+from nodegraph.cache import Cache
 from nodegraph.cli import main
 
 from .helpers import chain, two_branches
@@ -106,7 +107,8 @@ def test_cache_commands(graph_file, cache_dir, capsys):
     assert main(["cache", "info", "--cache", str(cache_dir)]) == 0
     assert "entries" in capsys.readouterr().out
     assert main(["cache", "gc", "--max-size", "0", "--cache", str(cache_dir)]) == 0
-    assert main(["cache", "clear", "--cache", str(cache_dir)]) == 0 and not cache_dir.exists()
+    assert main(["cache", "clear", "--cache", str(cache_dir)]) == 0
+    assert Cache(cache_dir).info()["entries"] == 0 and Cache(cache_dir).is_cache()
 
 
 def test_console_script_json_progress(graph_file, cache_dir):

@@ -59,7 +59,7 @@ def test_every_problem_is_reported_at_once():
 @pytest.mark.parametrize("mutate, node, port, text", [
     (lambda d: d["nodes"]["scale"].update(type="test.Scael"), "scale", "", "unknown node type 'test.Scael'; did you mean 'test.Scale'"),
     (lambda d: d["nodes"]["scale"]["params"].update(speed=1), "scale", "speed", "unknown parameter"),
-    (lambda d: d["nodes"]["scale"]["params"].update(factor="fast"), "scale", "factor", "valid number"),
+    (lambda d: d["nodes"]["scale"]["params"].update(factor="fast"), "scale", "factor", "expected a number"),
     (lambda d: d["edges"].pop(0), "scale", "values", "required input"),
     (lambda d: d["edges"].append(["ramp.values", "total.values"]), "total", "values", "connected twice"),
     (lambda d: d["edges"].append(["ramp.values", "scale.nope"]), "scale", "nope", "no input port"),

@@ -33,13 +33,13 @@ def load_rigid(path, frames=None) -> RigidSequence:
 
 
 def load_params(path, frames=None) -> ParamSequence:
-    return run_node(LoadParamSequence, {"path": str(path)}, frames=frames)["params"]
+    return run_node(LoadParamSequence, {"path": str(path)}, frames=frames)["sequence"]
 
 
 def save_params(path, params: ParamSequence):
     # run_node(..., params=...) would collide with run_node's own `params` argument
     frames = range(params.num_frames)
-    return execute(SaveParamSequence({"path": str(path)}), {"params": params}, frames, frames)
+    return execute(SaveParamSequence({"path": str(path)}), {"sequence": params}, frames, frames)
 
 
 @pytest.mark.parametrize("name", ["rigid.json", "rigid.npz"])

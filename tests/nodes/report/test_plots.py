@@ -13,7 +13,7 @@ from nodegraph import Files, NodeError, RigidSequence, run_node
 from nodes.io.face_model import load_face_model
 from nodes.report.plots import (CaptureReport, plot_head_motion, plot_position_histograms, position_spread,
                                 rigid_to_euler_translation, stabilize_points)
-from nodes.rigid.kabsch import invert_rigid
+from nodes.geometry.rigid import invert_rigid
 from nodes.synth.performance import generate_performance
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -101,7 +101,7 @@ def test_capture_report_node_writes_files_with_sha256(perf, tmp_path):
     for path, digest in zip(files.paths, files.sha256):
         assert _is_png(Path(path))
         assert hashlib.sha256(Path(path).read_bytes()).hexdigest() == digest
-    assert CaptureReport.cacheable is False
+    assert CaptureReport.writes_files and CaptureReport.cacheable
 
 
 def test_capture_report_node_errors(perf, tmp_path):
