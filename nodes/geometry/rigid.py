@@ -1,22 +1,28 @@
-"""Weighted rigid (optionally similarity) alignment of point sets: Kabsch / Umeyama, batched.
+"""Rigid transforms: weighted Kabsch / Umeyama alignment and 4x4 matrix helpers, batched.
 
-Also the small helpers on 4x4 rigid matrices that the rigid nodes and the metrics share:
-building them from rotation + translation, inverting them, applying them to points, and the
-rotation angle of a rotation matrix.
+Numpy (float64): `fit_rigid` (weighted rigid or similarity alignment of point sets),
+`rigid_matrix` (build from rotation + translation), `invert_rigid`, `apply_rigid`,
+`stabilize_vertices` (world vertices into the skull frame, in blocks of frames) and
+`rotation_angle`. Torch: `invert_rigid_torch` (same formula, any dtype and device,
+differentiable). Torch is not imported here: the torch functions only call tensor methods.
 
 Conventions: matrices act on column vectors, `y = R @ x + t`; `T_ref_src` maps points of
-frame "src" into frame "ref". Everything is computed in float64 numpy (these are closed-form
-solves on small 3x3 systems; the node outputs are float64 4x4 matrices anyway).
+frame "src" into frame "ref". The numpy functions compute in float64 (closed-form solves on
+small 3x3 systems; the node outputs are float64 4x4 matrices anyway).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from torch import Tensor
+
 __all__ = [
-    "RigidFit", "fit_rigid", "rigid_matrix", "invert_rigid", "apply_rigid", "rotation_angle",
+    "RigidFit", "fit_rigid", "rigid_matrix", "invert_rigid", "apply_rigid", "stabilize_vertices",
+    "rotation_angle", "invert_rigid_torch",
 ]
 
 
@@ -158,6 +164,31 @@ def apply_rigid(matrices: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ np.swapaxes(matrices[..., :3, :3], -1, -2) + matrices[..., None, :3, 3]
 
 
+def stabilize_vertices(vertices: np.ndarray, matrices: np.ndarray, *, block_frames: int = 256) -> np.ndarray:
+    """Return `S_f = M_f^-1 X_f`: world vertices moved into the skull frame.
+
+    Args:
+        vertices: (F, V, 3) world vertices, cm.
+        matrices: (F, 4, 4) float64 skull-to-world transforms.
+        block_frames: frames per block (bounds the float64 temporaries).
+    Returns:
+        (F, V, 3) float32 skull-frame vertices, cm.
+    Raises:
+        ValueError: `vertices` is not (F, V, 3) or `matrices` not (F, 4, 4).
+    """
+    vertices = np.asarray(vertices)
+    if vertices.ndim != 3 or vertices.shape[2] != 3:
+        raise ValueError(f"vertices: expected shape (F, V, 3), found {vertices.shape}")
+    if matrices.shape != (vertices.shape[0], 4, 4):
+        raise ValueError(f"matrices: expected shape ({vertices.shape[0]}, 4, 4), found {matrices.shape}")
+    out = np.empty(vertices.shape, dtype=np.float32)
+    inverse = invert_rigid(matrices)
+    for a in range(0, vertices.shape[0], block_frames):
+        b = min(vertices.shape[0], a + block_frames)
+        out[a:b] = apply_rigid(inverse[a:b], vertices[a:b])
+    return out
+
+
 def rotation_angle(rotation: np.ndarray) -> np.ndarray:
     """Return the angle (radians, in [0, pi]) of (..., 3, 3) rotation matrices.
 
@@ -170,3 +201,21 @@ def rotation_angle(rotation: np.ndarray) -> np.ndarray:
                      rotation[..., 1, 0] - rotation[..., 0, 1]], -1)
     sin = np.linalg.norm(skew, axis=-1) / 2.0
     return np.arctan2(sin, cos)
+
+
+def invert_rigid_torch(matrices: Tensor) -> Tensor:
+    """Return the inverses of rigid 4x4 matrices `[[R, t], [0, 1]] -> [[R^T, -R^T t], [0, 1]]`.
+
+    The tensor twin of `invert_rigid` (same formula; no float64 conversion).
+
+    Args:
+        matrices: (..., 4, 4) rigid transforms, any float dtype and device.
+    Returns:
+        (..., 4, 4) inverses, same dtype and device; differentiable.
+    """
+    rot_t = matrices[..., :3, :3].transpose(-1, -2)
+    out = matrices.new_zeros(matrices.shape)
+    out[..., :3, :3] = rot_t
+    out[..., :3, 3] = -(rot_t @ matrices[..., :3, 3:])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out

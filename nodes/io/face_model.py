@@ -21,9 +21,11 @@ import numpy as np
 
 from nodegraph import SEQUENCE, FaceModel, InputError, Node, NodeParams, Out, Param
 
+from ..geometry.sampling import farthest_point_sampling
+
 __all__ = [
     "BUNDLED_MODEL", "bundled_model_path", "load_face_model", "restrict_face_model",
-    "farthest_point_sampling", "triangulate_polygons", "LoadFaceModel",
+    "triangulate_polygons", "LoadFaceModel",
 ]
 
 BUNDLED_MODEL = "ict_face_model.npz"
@@ -57,46 +59,6 @@ def triangulate_polygons(polygons: np.ndarray) -> np.ndarray:
     pairs = np.stack([polygons[:, [0, 1, 2]], polygons[:, [0, 2, 3]]], axis=1)  # (P, 2, 3)
     keep = np.stack([np.ones(len(polygons), bool), polygons[:, 3] >= 0], axis=1)  # (P, 2)
     return pairs[keep].astype(np.int32)
-
-
-def farthest_point_sampling(points: np.ndarray, count: int, *, seed: int = 0,
-                            first: int | None = None) -> np.ndarray:
-    """Pick `count` well-spread points greedily (each new point is the farthest from those picked).
-
-    Args:
-        points: (N, 3) float positions.
-        count: number to pick; `count >= N` returns every index.
-        seed: chooses the first point (deterministic for a given seed) when `first` is None.
-        first: index of the first point; None = drawn from `seed`. Ties pick the lowest index.
-    Returns:
-        (min(count, N),) int64 indices, sorted ascending.
-
-    Note:
-        O(count * N) time, vectorized over points; 2,000 of 26,719 points take about 0.3 s.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    n = points.shape[0]
-    if count >= n:
-        return np.arange(n)
-    if count <= 0:
-        return np.zeros((0,), np.int64)
-    if first is not None and not 0 <= first < n:
-        raise ValueError(f"first: expected an index in 0..{n - 1}, found {first}")
-    chosen = np.empty(count, np.int64)
-    chosen[0] = np.random.default_rng(seed).integers(n) if first is None else first
-    columns = np.ascontiguousarray(points.T)  # (3, N): contiguous rows make the loop fast
-    dist = np.full(n, np.inf)
-    step, scratch = np.empty(n), np.empty(n)
-    for i in range(1, count):
-        np.subtract(columns[0], columns[0, chosen[i - 1]], out=step)
-        np.square(step, out=step)
-        for c in (1, 2):
-            np.subtract(columns[c], columns[c, chosen[i - 1]], out=scratch)
-            np.square(scratch, out=scratch)
-            step += scratch
-        np.minimum(dist, step, out=dist)
-        chosen[i] = int(np.argmax(dist))
-    return np.sort(chosen)
 
 
 def _remap(old_to_new: np.ndarray, indices: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ import numpy as np
 from nodegraph import (SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out, Param,
                        RigidSequence, Table)
 
-from ..rigid.kabsch import apply_rigid, fit_rigid, invert_rigid, rotation_angle
+from ..geometry.rigid import apply_rigid, fit_rigid, invert_rigid, rotation_angle
 
 __all__ = ["StabilizationErrors", "stabilization_errors", "StabilizationError"]
 

@@ -2,12 +2,10 @@
 
 from . import nodes  # noqa: F401  (registers rigid.ReferenceFrame, ThreePoint, Procrustes, ICP)
 from .icp import IcpResult, robust_icp, robust_weights, vertex_normals
-from .kabsch import RigidFit, apply_rigid, fit_rigid, invert_rigid, rigid_matrix, rotation_angle
 from .nodes import (ICP, Procrustes, ReferenceFrame, ThreePoint, spread_triple, three_point_frames,
                     triangle_quality)
 
 __all__ = [
-    "RigidFit", "fit_rigid", "rigid_matrix", "invert_rigid", "apply_rigid", "rotation_angle",
     "IcpResult", "robust_icp", "robust_weights", "vertex_normals",
     "triangle_quality", "three_point_frames", "spread_triple",
     "ReferenceFrame", "ThreePoint", "Procrustes", "ICP",

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .kabsch import apply_rigid, rigid_matrix
+from ..geometry.rigid import apply_rigid, rigid_matrix
 
 __all__ = ["IcpResult", "vertex_normals", "robust_weights", "robust_icp"]
 

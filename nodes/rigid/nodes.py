@@ -19,9 +19,9 @@ from scipy.spatial import cKDTree
 from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, RigidSequence)
 
-from ..io.face_model import farthest_point_sampling
+from ..geometry.rigid import apply_rigid, fit_rigid, invert_rigid, rigid_matrix
+from ..geometry.sampling import farthest_point_sampling
 from .icp import robust_icp, vertex_normals
-from .kabsch import apply_rigid, fit_rigid, invert_rigid, rigid_matrix
 
 __all__ = [
     "triangle_quality", "three_point_frames", "spread_triple",
@@ -245,7 +245,7 @@ class Procrustes(Node):
     Minimises `sum_{i in group} |R ref_i + t - mesh_fi|^2` per frame (uniform weights). There
     is no `with_scale` option: the best rotation does not depend on a scale and the best rigid
     translation for it moves the centroids together, so a scale could not change a rigid
-    output (see `nodes.rigid.kabsch.fit_rigid` for similarity fits).
+    output (see `nodes.geometry.rigid.fit_rigid` for similarity fits).
     """
 
     type_name = "rigid.Procrustes"

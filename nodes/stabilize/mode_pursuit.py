@@ -61,18 +61,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..io.face_model import farthest_point_sampling as _farthest_point_sampling_np
-from ..rigid.kabsch import apply_rigid, invert_rigid as _invert_rigid_np
-from .bspline import SplineBasis, evaluate_spline, fit_control_points, frame_basis, num_control_points, refine_midpoint
-from .dualquat import (dualquat_align_hemisphere, dualquat_from_rotation_translation,
-                       dualquat_identity, dualquat_normalize, dualquat_to_rotmat_translation,
-                       rotmat_to_quat)
+from ..geometry.bspline import (SplineBasis, evaluate_spline, fit_control_points, frame_basis,
+                                num_control_points, refine_midpoint)
+from ..geometry.dualquat import (dualquat_align_hemisphere, dualquat_from_rotation_translation,
+                                 dualquat_identity, dualquat_normalize, dualquat_to_rotmat_translation,
+                                 rotmat_to_quat)
+from ..geometry.rigid import invert_rigid_torch
+from ..geometry.sampling import farthest_point_sampling_torch
 from .energy import EnergyData, block_energy, default_block_frames, fused_energy
 from .lbfgs import lbfgs
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, StageLog, make_schedule
 
-__all__ = ["ModePursuitResult", "mode_pursuit", "farthest_point_sampling", "stabilize_vertices",
-           "invert_rigid"]
+__all__ = ["ModePursuitResult", "mode_pursuit"]
 
 ProgressFn = Callable[[float, str], None]
 
@@ -80,69 +80,6 @@ ProgressFn = Callable[[float, str], None]
 # --------------------------------------------------------------------------------------
 # Helpers
 # --------------------------------------------------------------------------------------
-def farthest_point_sampling(points: Tensor, count: int) -> Tensor:
-    """Pick `count` well-spread points, deterministically (greedy farthest-point sampling).
-
-    Starts at the point nearest the centroid (not at a seeded random one, so the picks do not
-    depend on a seed); each next pick maximises the distance to the picks so far (ties: lowest
-    index). A tensor front end of `nodes.io.face_model.farthest_point_sampling`.
-
-    Args:
-        points: (N, 3) positions.
-        count: number to pick (clipped to N).
-    Returns:
-        (min(count, N),) int64 indices on `points.device`, sorted ascending.
-    """
-    n = points.shape[0]
-    if count >= n:
-        return torch.arange(n, device=points.device)
-    pts = points.detach().to(torch.float64)
-    first = int(((pts - pts.mean(0)) ** 2).sum(1).argmin())
-    picks = _farthest_point_sampling_np(pts.cpu().numpy(), count, first=first)
-    return torch.from_numpy(picks).to(points.device)
-
-
-def invert_rigid(matrices: Tensor) -> Tensor:
-    """Return the inverses of rigid 4x4 matrices `[[R, t], [0, 1]] -> [[R^T, -R^T t], [0, 1]]`.
-
-    The tensor twin of `nodes.rigid.kabsch.invert_rigid` (mode pursuit's transforms are tensors).
-
-    Args:
-        matrices: (..., 4, 4) rigid transforms.
-    Returns:
-        (..., 4, 4) inverses, same dtype.
-    """
-    rot_t = matrices[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(matrices)
-    out[..., :3, :3] = rot_t
-    out[..., :3, 3] = -(rot_t @ matrices[..., :3, 3:])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def stabilize_vertices(vertices: np.ndarray, matrices: np.ndarray, *, block_frames: int = 256) -> np.ndarray:
-    """Return `S_f = M_f^-1 X_f`: world vertices moved into the skull frame.
-
-    Args:
-        vertices: (F, V, 3) world vertices, cm.
-        matrices: (F, 4, 4) float64 skull-to-world transforms.
-        block_frames: frames per block (bounds the float64 temporaries).
-    Returns:
-        (F, V, 3) float32 skull-frame vertices, cm.
-    """
-    vertices = np.asarray(vertices)
-    if vertices.ndim != 3 or vertices.shape[2] != 3:
-        raise ValueError(f"vertices: expected shape (F, V, 3), found {vertices.shape}")
-    if matrices.shape != (vertices.shape[0], 4, 4):
-        raise ValueError(f"matrices: expected shape ({vertices.shape[0]}, 4, 4), found {matrices.shape}")
-    out = np.empty(vertices.shape, dtype=np.float32)
-    inverse = _invert_rigid_np(matrices)
-    for a in range(0, vertices.shape[0], block_frames):
-        b = min(vertices.shape[0], a + block_frames)
-        out[a:b] = apply_rigid(inverse[a:b], vertices[a:b])
-    return out
-
-
 class ModePursuitResult(NamedTuple):
     """Output of `mode_pursuit`.
 
@@ -288,11 +225,11 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         init_t = torch.as_tensor(np.asarray(init) if not isinstance(init, Tensor) else init).to(torch.float64)
         if init_t.shape != (num_frames, 4, 4):
             raise ValueError(f"init: expected shape ({num_frames}, 4, 4), found {tuple(init_t.shape)}")
-        world_to_skull = invert_rigid(init_t.cpu())
+        world_to_skull = invert_rigid_torch(init_t.cpu())
 
     if ids.numel() > max_vertices:
         # Spread is rigid-invariant, so the first frame (world) serves as the shape to sample.
-        ids = ids[farthest_point_sampling(verts[0, ids], max_vertices)]
+        ids = ids[farthest_point_sampling_torch(verts[0, ids], max_vertices)]
     x_sel = verts[:, ids].to(torch.float32)                                   # (F, E, 3)
     rot0 = world_to_skull[:, :3, :3]
 
@@ -398,7 +335,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     world_to_skull[:, :3, :3] = rot
     world_to_skull[:, :3, 3] = scale * trans + centre - rot @ centre
     world_to_skull[:, 3, 3] = 1.0
-    matrices = invert_rigid(world_to_skull)
+    matrices = invert_rigid_torch(world_to_skull)
     rest_cm = (rest_x.T.double().cpu() * scale + centre).to(torch.float32)
     return ModePursuitResult(matrices.numpy(), rest_cm.numpy(), ids.numpy().astype(np.int64),
                              counters["evaluations"], total_iterations, stages_out,

@@ -14,7 +14,8 @@ from pydantic import model_validator
 
 from nodegraph import SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 
-from .mode_pursuit import mode_pursuit, stabilize_vertices
+from ..geometry.rigid import stabilize_vertices
+from .mode_pursuit import mode_pursuit
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS
 
 __all__ = ["ModePursuit", "ModePursuitParams"]

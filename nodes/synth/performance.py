@@ -127,7 +127,7 @@ def transform_points(matrices: np.ndarray, points: np.ndarray) -> np.ndarray:
 
     Each frame is one (V, 3) @ (3, 3) product of the same shape, so a frame's result does not
     depend on which other frames are computed with it (a batched product could). Deliberately not
-    `nodes.rigid.kabsch.apply_rigid`: that one computes in float64, and its results rounded to
+    `nodes.geometry.rigid.apply_rigid`: that one computes in float64, and its results rounded to
     float32 differ in the last bit from these float32 products for about 40 % of coordinates,
     so using it would change every synthetic capture the generator has produced.
 

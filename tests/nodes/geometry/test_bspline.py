@@ -1,11 +1,11 @@
-"""Tests of nodes.stabilize.bspline against scipy.interpolate.BSpline."""
+"""Tests of nodes.geometry.bspline against scipy.interpolate.BSpline."""
 
 import numpy as np
 import pytest
 import torch
 from scipy.interpolate import BSpline
 
-from nodes.stabilize.bspline import (basis_matrix, bspline_basis, evaluate_spline, fit_control_points,
+from nodes.geometry.bspline import (basis_matrix, bspline_basis, evaluate_spline, fit_control_points,
                                      frame_basis, num_control_points, refine_midpoint, uniform_knots)
 
 

@@ -1,11 +1,11 @@
-"""Tests of nodes.stabilize.dualquat against scipy Rotation and 4x4 matrix algebra."""
+"""Tests of nodes.geometry.dualquat against scipy Rotation and 4x4 matrix algebra."""
 
 import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from nodes.stabilize.dualquat import (dualquat_align_hemisphere, dualquat_blend, dualquat_conjugate,
+from nodes.geometry.dualquat import (dualquat_align_hemisphere, dualquat_blend, dualquat_conjugate,
                                       dualquat_from_matrix, dualquat_from_rotation_translation,
                                       dualquat_identity, dualquat_multiply, dualquat_normalize,
                                       dualquat_to_matrix, dualquat_to_rotation_translation,

@@ -1,16 +1,17 @@
-"""Tests of nodes.rigid.kabsch: weighted Kabsch/Umeyama and the 4x4 rigid helpers."""
+"""Tests of nodes.geometry.rigid: weighted Kabsch/Umeyama and the 4x4 rigid helpers (numpy, torch)."""
 
 import doctest
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 from scipy.linalg import orthogonal_procrustes
 from scipy.spatial.transform import Rotation
 
-from nodes.rigid import kabsch
-from nodes.rigid.kabsch import (apply_rigid, fit_rigid, invert_rigid, rigid_matrix,
-                                rotation_angle)
+from nodes.geometry import rigid
+from nodes.geometry.rigid import (apply_rigid, fit_rigid, invert_rigid, invert_rigid_torch, rigid_matrix,
+                                  rotation_angle, stabilize_vertices)
 
 
 def _random_rigid(rng, batch, max_deg=90.0, max_trans=10.0):
@@ -154,6 +155,38 @@ def test_invert_and_apply_rigid_match_numpy():
     np.testing.assert_allclose(apply_rigid(mats, pts), expected, atol=1e-12)
 
 
+def test_stabilize_vertices_and_invert_rigid_torch_match_matrix_inverse():
+    rng = np.random.default_rng(1)
+    m = np.tile(np.eye(4), (5, 1, 1))
+    m[:, :3, :3] = Rotation.random(5, random_state=1).as_matrix()
+    m[:, :3, 3] = rng.normal(size=(5, 3))
+    x = rng.normal(size=(5, 7, 3)).astype(np.float32)
+    want = np.stack([(np.linalg.inv(m[f]) @ np.c_[x[f], np.ones(7)].T).T[:, :3] for f in range(5)])
+    got = stabilize_vertices(x, m, block_frames=2)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_allclose(invert_rigid_torch(torch.tensor(m)).numpy(), np.linalg.inv(m), atol=1e-12)
+    np.testing.assert_array_equal(invert_rigid_torch(torch.tensor(m)).numpy(), invert_rigid(m))
+
+
+@pytest.mark.parametrize("batch", [(), (2, 3)])
+def test_invert_rigid_torch_shapes_dtype_and_gradient(batch):
+    rot, trans = _random_rigid(np.random.default_rng(8), batch)
+    m = torch.tensor(rigid_matrix(rot, trans), requires_grad=True)
+    inv = invert_rigid_torch(m)
+    assert inv.shape == batch + (4, 4) and inv.dtype == torch.float64
+    assert torch.allclose(inv @ m, torch.eye(4, dtype=torch.float64).expand_as(m), atol=1e-12)
+    assert invert_rigid_torch(m.detach().float()).dtype == torch.float32
+    assert torch.autograd.gradcheck(invert_rigid_torch, (m,))
+
+
+def test_stabilize_vertices_rejects_bad_shapes():
+    with pytest.raises(ValueError, match=r"vertices: expected shape \(F, V, 3\), found \(4, 3\)"):
+        stabilize_vertices(np.zeros((4, 3)), np.tile(np.eye(4), (4, 1, 1)))
+    with pytest.raises(ValueError, match=r"matrices: expected shape \(4, 4, 4\), found \(3, 4, 4\)"):
+        stabilize_vertices(np.zeros((4, 5, 3)), np.tile(np.eye(4), (3, 1, 1)))
+
+
 def test_rotation_angle_matches_scipy_including_near_pi():
     rng = np.random.default_rng(7)
     rotvec = rng.normal(size=(20, 3))
@@ -164,6 +197,6 @@ def test_rotation_angle_matches_scipy_including_near_pi():
     np.testing.assert_allclose(rotation_angle(mats), np.linalg.norm(rotvec, axis=1), atol=1e-7)
 
 
-def test_kabsch_docstring_examples():
-    result = doctest.testmod(kabsch)
+def test_rigid_docstring_examples():
+    result = doctest.testmod(rigid)
     assert result.attempted > 0 and result.failed == 0

@@ -8,8 +8,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from nodegraph import FaceModel, NodeError, run_node
-from nodes.io.face_model import (LoadFaceModel, bundled_model_path, farthest_point_sampling,
-                                 load_face_model, restrict_face_model, triangulate_polygons)
+from nodes.io.face_model import (LoadFaceModel, bundled_model_path, load_face_model, restrict_face_model,
+                                 triangulate_polygons)
 
 
 @pytest.fixture(scope="module")
@@ -127,22 +127,6 @@ def test_max_vertices_subset_is_spread_point_set(face):
     assert cover_fps < 0.7 * cover_random
     again = load_face_model(region="face", max_vertices=300)
     np.testing.assert_array_equal(again.neutral, sub.neutral)
-
-
-def test_farthest_point_sampling_matches_naive_loop():
-    points = np.random.default_rng(1).standard_normal((200, 3))
-    got = farthest_point_sampling(points, 25, seed=3)
-    first = np.random.default_rng(3).integers(200)
-    chosen = [int(first)]
-    while len(chosen) < 25:
-        best, best_d = -1, -1.0
-        for i in range(200):
-            d = min(float(np.sum((points[i] - points[j]) ** 2)) for j in chosen)
-            if d > best_d:
-                best, best_d = i, d
-        chosen.append(best)
-    np.testing.assert_array_equal(got, np.sort(chosen))
-    np.testing.assert_array_equal(farthest_point_sampling(points, 500), np.arange(200))
 
 
 def test_load_face_model_missing_file(tmp_path):

@@ -6,7 +6,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from nodes.rigid.icp import robust_icp, robust_weights, vertex_normals
-from nodes.rigid.kabsch import apply_rigid, invert_rigid, rigid_matrix, rotation_angle
+from nodes.geometry.rigid import apply_rigid, invert_rigid, rigid_matrix, rotation_angle
 
 
 def _head(subdivisions=3):

@@ -10,8 +10,8 @@ from scipy.linalg import orthogonal_procrustes
 from scipy.spatial.transform import Rotation
 
 from nodegraph import MeshSequence, NodeError, run_node
-from nodes.rigid import (ICP, Procrustes, ReferenceFrame, ThreePoint, apply_rigid, invert_rigid,
-                         rigid_matrix, rotation_angle, spread_triple, three_point_frames,
+from nodes.geometry.rigid import apply_rigid, invert_rigid, rigid_matrix, rotation_angle
+from nodes.rigid import (ICP, Procrustes, ReferenceFrame, ThreePoint, spread_triple, three_point_frames,
                          triangle_quality)
 
 BASELINES = [ThreePoint, Procrustes, ICP]

@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 from nodegraph import MeshSequence, NodeError, RigidSequence, run_node
 from nodes.stabilize import ModePursuit
 from nodes.stabilize.energy import fused_stabilization_energy, stabilization_energy
-from nodes.stabilize.mode_pursuit import farthest_point_sampling, invert_rigid, mode_pursuit, stabilize_vertices
+from nodes.geometry.rigid import stabilize_vertices
+from nodes.stabilize.mode_pursuit import mode_pursuit
 from nodes.stabilize.schedule import make_schedule
 
 
@@ -165,30 +166,6 @@ def test_make_schedule_walks_widths_and_spreads_refinements():
     assert [(s.width_pos, s.refine) for s in many] == [(1.0, False), (0.5, True), (0.5, True), (0.5, True)]
     with pytest.raises(ValueError, match="velocity_widths: expected as many widths as position_widths"):
         make_schedule([1.0, 0.5], [0.1])
-
-
-def test_farthest_point_sampling_is_deterministic_and_spread():
-    pts = torch.tensor(np.random.default_rng(0).normal(size=(500, 3)))
-    a = farthest_point_sampling(pts, 40)
-    assert torch.equal(a, farthest_point_sampling(pts, 40)) and len(set(a.tolist())) == 40
-    # spread: the sampled set's smallest pairwise distance beats random subsets of the same size
-    def min_gap(idx):
-        d = torch.cdist(pts[idx], pts[idx])
-        return float(d[~torch.eye(len(idx), dtype=torch.bool)].min())
-    rand = [min_gap(torch.tensor(np.random.default_rng(s).choice(500, 40, replace=False))) for s in range(20)]
-    assert min_gap(a) > max(rand)
-    assert torch.equal(farthest_point_sampling(pts, 900), torch.arange(500))
-
-
-def test_stabilize_vertices_and_invert_rigid_match_matrix_inverse():
-    rng = np.random.default_rng(1)
-    m = np.tile(np.eye(4), (5, 1, 1))
-    m[:, :3, :3] = Rotation.random(5, random_state=1).as_matrix()
-    m[:, :3, 3] = rng.normal(size=(5, 3))
-    x = rng.normal(size=(5, 7, 3)).astype(np.float32)
-    want = np.stack([(np.linalg.inv(m[f]) @ np.c_[x[f], np.ones(7)].T).T[:, :3] for f in range(5)])
-    np.testing.assert_allclose(stabilize_vertices(x, m, block_frames=2), want, atol=1e-5)
-    np.testing.assert_allclose(invert_rigid(torch.tensor(m)).numpy(), np.linalg.inv(m), atol=1e-12)
 
 
 # -- optimizer -------------------------------------------------------------------------------------
