@@ -5,13 +5,22 @@ Pixels are float32 in memory, (F, H, W, C), origin top-left. Integer files (8/16
 scaled to [0, 1] when read and clipped to [0, 1] and rounded when written; float files are
 kept as stored. Channels and alpha are preserved (names from the file, e.g. R, G, B, A; Y
 for greyscale PNG); colour is never (un)premultiplied by alpha on read or write. Run frame `f` is file number `first_frame + f`.
+
+Colour space (`ImageSequence.colour_space`): files with float or half pixels (EXR, HDR,
+float TIFF) hold linear light and load as "linear"; integer files (8/16-bit PNG, JPEG,
+TIFF, ...) hold sRGB-encoded values and load as "srgb" (the loader's `colour_space` param
+overrides this, e.g. for linear 16-bit data). The saver writes each file in the space of its
+pixel type (float/half: linear, integer: sRGB; its `colour_space` param overrides) and
+converts the sequence when it is in the other space, with the exact sRGB curve on colour
+channels (alpha and depth untouched): a linear sequence written to PNG is sRGB-encoded, an
+sRGB sequence written to EXR is decoded to linear. Loading back gives the space written.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -21,7 +30,8 @@ from ._files import (atomic_path, expand_frame_pattern, files_value, find_frame_
                      frame_token, frame_where, pattern_files)
 
 __all__ = ["IMAGE_WRITE_FORMATS", "read_image", "write_image", "image_frame_count",
-           "load_image_sequence", "save_image_sequence", "LoadImageSequence", "SaveImageSequence"]
+           "image_frame_files", "load_image_sequence", "save_image_sequence", "LoadImageSequence",
+           "SaveImageSequence"]
 
 IMAGE_WRITE_FORMATS = {".exr": "exr", ".png": "png", ".tif": "tiff", ".tiff": "tiff",
                        ".jpg": "jpeg", ".jpeg": "jpeg"}
@@ -33,6 +43,12 @@ _DEPTHS: dict[str, tuple[str, ...]] = {  # first = the "auto" choice
 }
 _CHANNELS: dict[str, tuple[int, ...]] = {"png": (1, 2, 3, 4), "jpeg": (1, 3)}
 BitDepth = Literal["auto", "uint8", "uint16", "half", "float"]
+ColourSpaceChoice = Literal["auto", "linear", "srgb"]
+
+
+def _file_colour_space(pixel_type: str) -> str:
+    """Colour space a file's pixel type implies: float/half -> "linear", integer -> "srgb"."""
+    return "linear" if pixel_type in ("half", "float", "double") else "srgb"
 
 
 def _oiio():
@@ -58,15 +74,33 @@ def _open(path: str):
     return oiio.ImageInput.open(path, config)
 
 
-def _header(path: str) -> tuple[int, int, list[str]]:
-    """(width, height, channel names) of an image file, reading only its header."""
+def _header(path: str) -> tuple[int, int, list[str], str]:
+    """(width, height, channel names, colour space) of an image file, reading only its header."""
     oiio = _oiio()
     inp = _open(path)
     if inp is None:
         raise ValueError(oiio.geterror() or "cannot open")
     try:
         spec = inp.spec()
-        return spec.width, spec.height, list(spec.channelnames)
+        return spec.width, spec.height, list(spec.channelnames), _file_colour_space(str(spec.format))
+    finally:
+        inp.close()
+
+
+def _read_image(path: str) -> tuple[np.ndarray, list[str], str]:
+    """`read_image` plus the colour space the file's pixel type implies."""
+    oiio = _oiio()
+    inp = _open(path)
+    if inp is None:
+        raise ValueError(oiio.geterror() or "cannot open")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        error = inp.geterror() if hasattr(inp, "geterror") else ""
+        if pixels is None or error:
+            raise ValueError(error or oiio.geterror() or "cannot read pixels")
+        pixels = np.asarray(pixels, np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        return pixels, list(spec.channelnames), _file_colour_space(str(spec.format))
     finally:
         inp.close()
 
@@ -81,20 +115,8 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
     Raises:
         ValueError: unreadable or truncated file (with OpenImageIO's message).
     """
-    oiio = _oiio()
-    inp = _open(os.fspath(path))
-    if inp is None:
-        raise ValueError(oiio.geterror() or "cannot open")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        error = inp.geterror() if hasattr(inp, "geterror") else ""
-        if pixels is None or error:
-            raise ValueError(error or oiio.geterror() or "cannot read pixels")
-        pixels = np.asarray(pixels, np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        return pixels, list(spec.channelnames)
-    finally:
-        inp.close()
+    pixels, channels, _ = _read_image(os.fspath(path))
+    return pixels, channels
 
 
 def write_image(path: str | os.PathLike, pixels: np.ndarray, channels: list[str],
@@ -150,8 +172,24 @@ def image_frame_count(path: str, first_frame: int | None = None) -> int:
     return max(0, numbers[-1] - first + 1) if numbers and first is not None else 0
 
 
+def image_frame_files(path: str, frames: range | None = None,
+                      first_frame: int | None = None) -> list[Path]:
+    """Existing files of run frames `frames` of a numbered pattern (None = every file).
+
+    Run frame f is file number first_frame + f (first_frame None = the lowest number found).
+    """
+    if frames is None:
+        return pattern_files(path)
+    numbers = find_frame_numbers(path)
+    first = first_frame if first_frame is not None else (numbers[0] if numbers else None)
+    if first is None:
+        return []
+    present = set(numbers)
+    return [Path(expand_frame_pattern(path, first + f)) for f in frames if first + f in present]
+
+
 def load_image_sequence(path: str, frames: range, *, first_frame: int | None = None,
-                        fps: float = 30.0) -> ImageSequence:
+                        fps: float = 30.0, colour_space: str = "auto") -> ImageSequence:
     """Read run frames `frames` of a numbered image pattern (only those files, plus frame 0's header).
 
     Args:
@@ -159,12 +197,17 @@ def load_image_sequence(path: str, frames: range, *, first_frame: int | None = N
         frames: run frames; frame f is file number first_frame + f.
         first_frame: number of the file of frame 0; None = the lowest number found.
         fps: frames per second of the sequence.
+        colour_space: "auto" (float/half files "linear", integer files "srgb"), or "linear"
+            / "srgb" to declare the files' space (values are never converted on read).
     Returns:
         ImageSequence (len(frames), H, W, C) float32 with the channel names of frame 0.
     Raises:
         InputError: naming file and frame: unknown extension, missing or unreadable file,
-            size or channels different from frame 0.
+            size, channels or (with "auto") pixel type different from frame 0.
     """
+    if colour_space not in get_args(ColourSpaceChoice):
+        raise InputError("colour_space", f"expected one of {list(get_args(ColourSpaceChoice))}, "
+                                         f"found {colour_space!r}")
     format_of(path, _read_formats())
     _check_pattern(path)
     numbers = find_frame_numbers(path)
@@ -185,26 +228,34 @@ def load_image_sequence(path: str, frames: range, *, first_frame: int | None = N
 
     ref_file = file_of(0)
     try:
-        width, height, channels = _header(ref_file)
+        width, height, channels, ref_space = _header(ref_file)
     except ValueError as err:
         raise unreadable(0, ref_file, err) from err
     pixels = np.empty((len(frames), height, width, len(channels)), np.float32)
     for i, f in enumerate(frames):
         file = file_of(f)
         try:
-            image, names = read_image(file)
+            image, names, space = _read_image(file)
         except ValueError as err:
             raise unreadable(f, file, err) from err
         if image.shape != pixels.shape[1:] or names != channels:
             raise InputError("path", f"{frame_where(f, file)}: expected {width}x{height} pixels with "
                                      f"channels {channels} as in frame 0 ('{ref_file}'), found "
                                      f"{image.shape[1]}x{image.shape[0]} with channels {names}")
+        if colour_space == "auto" and space != ref_space:
+            raise InputError("path", f"{frame_where(f, file)}: expected {ref_space} pixels "
+                                     f"({'float' if ref_space == 'linear' else 'integer'}) as in "
+                                     f"frame 0 ('{ref_file}'), found {space} "
+                                     f"({'float' if space == 'linear' else 'integer'}); set "
+                                     "colour_space to declare one space for all frames")
         pixels[i] = image
-    return ImageSequence(pixels=pixels, channels=channels, fps=fps)
+    return ImageSequence(pixels=pixels, channels=channels, fps=fps,
+                         colour_space=ref_space if colour_space == "auto" else colour_space)
 
 
 def save_image_sequence(path: str, images: ImageSequence, frames: range, *, first_frame: int = 0,
-                        bit_depth: str = "auto", quality: int = 95, progress=None) -> list[str]:
+                        bit_depth: str = "auto", quality: int = 95, colour_space: str = "auto",
+                        progress=None) -> list[str]:
     """Write one file per frame, atomically; return the written paths.
 
     Args:
@@ -214,6 +265,9 @@ def save_image_sequence(path: str, images: ImageSequence, frames: range, *, firs
         bit_depth: "auto" (EXR float, PNG uint8, TIFF uint16, JPEG uint8) or one the format
             stores: EXR float/half, PNG uint8/uint16, TIFF uint8/uint16/float, JPEG uint8.
         quality: JPEG quality 1..100.
+        colour_space: space of the written files: "auto" (float/half depths "linear",
+            integer depths "srgb"), "linear" or "srgb". `images` is converted to it first
+            when its `colour_space` differs (exact sRGB curve, colour channels only).
     Raises:
         InputError: unknown extension, a depth or channel count the format cannot store,
             non-finite pixels for an integer format.
@@ -229,6 +283,11 @@ def save_image_sequence(path: str, images: ImageSequence, frames: range, *, firs
         raise InputError("images", f"expected {' or '.join(map(str, _CHANNELS[fmt]))} channels for "
                                    f"{fmt.upper()} ('{path}'), found {count} {images.channels}; "
                                    "write EXR or TIFF instead")
+    if colour_space not in get_args(ColourSpaceChoice):
+        raise InputError("colour_space", f"expected one of {list(get_args(ColourSpaceChoice))}, "
+                                         f"found {colour_space!r}")
+    target = _file_colour_space(depth) if colour_space == "auto" else colour_space
+    images = images.to_colour_space(target)
     written = []
     for i, f in enumerate(frames):
         if depth.startswith("uint") and not np.isfinite(images.pixels[i]).all():
@@ -247,7 +306,7 @@ class LoadImageSequence(Node):
     """Read a numbered image sequence (EXR, PNG, TIFF, JPEG, ...) as float32 pixels."""
 
     type_name = "io.LoadImageSequence"
-    version = 1
+    version = 2  # 2: colour_space
     kind = FRAMEWISE
 
     class Params(NodeParams):
@@ -256,8 +315,12 @@ class LoadImageSequence(Node):
         first_frame: int | None = Param(None, description="Number of the file of frame 0; None = "
                                         "the lowest number found.")
         fps: float = Param(30.0, gt=0, description="Frames per second (1/s).")
+        colour_space: ColourSpaceChoice = Param("auto", description="Colour space of the files: "
+                                                "auto (float files linear, integer files srgb), "
+                                                "linear or srgb (declared, not converted).")
 
-    images = Out(ImageSequence, doc="Pixels (F, H, W, C) float32, integer files scaled to [0, 1].")
+    images = Out(ImageSequence, doc="Pixels (F, H, W, C) float32, integer files scaled to [0, 1]; "
+                 "colour_space linear (float files) or srgb (integer files).")
 
     def frame_count(self) -> int | None:
         p = self.params
@@ -266,20 +329,21 @@ class LoadImageSequence(Node):
             load_image_sequence(p.path, range(0, 1), first_frame=p.first_frame, fps=p.fps)
         return count
 
-    def input_files(self) -> list[Path]:
-        return pattern_files(self.params.path)
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        """The existing files of run frames `frames` (None: every file of the pattern)."""
+        return image_frame_files(self.params.path, frames, self.params.first_frame)
 
     def run(self) -> dict[str, ImageSequence]:
         p = self.params
         return {"images": load_image_sequence(p.path, self.frames, first_frame=p.first_frame,
-                                               fps=p.fps)}
+                                               fps=p.fps, colour_space=p.colour_space)}
 
 
 class SaveImageSequence(Node):
     """Write one image file per frame (EXR, PNG, TIFF or JPEG by extension), atomically."""
 
     type_name = "io.SaveImageSequence"
-    version = 1
+    version = 2  # 2: converts to the file's colour space
     kind = FRAMEWISE
     cacheable = False
 
@@ -290,13 +354,16 @@ class SaveImageSequence(Node):
         bit_depth: BitDepth = Param("auto", description="auto (EXR float, PNG uint8, TIFF uint16, "
                                     "JPEG uint8), uint8, uint16, half or float.")
         quality: int = Param(95, ge=1, le=100, description="JPEG quality (1..100).")
+        colour_space: ColourSpaceChoice = Param("auto", description="Colour space of the files: "
+                                                "auto (float/half linear, integer srgb), linear "
+                                                "or srgb; the images are converted to it.")
 
-    images = In(ImageSequence, doc="The frames to write.")
+    images = In(ImageSequence, doc="The frames to write (converted to the files' colour space).")
     files = Out(Files, doc="Paths written by this chunk and their sha256.")
 
     def run(self, images: ImageSequence) -> dict[str, Files]:
         p = self.params
         written = save_image_sequence(p.path, images, self.frames, first_frame=p.first_frame,
                                       bit_depth=p.bit_depth, quality=p.quality,
-                                      progress=self.progress)
+                                      colour_space=p.colour_space, progress=self.progress)
         return {"files": files_value(written)}

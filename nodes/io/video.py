@@ -9,7 +9,9 @@ wanted frame, the chunk retries from the keyframe before, and finally from the s
 Streams without timestamps are decoded from the start and counted in decoder output order.
 
 Pixels are RGB float32 in [0, 1]: 8-bit formats converted through `rgb24` (/255), deeper
-ones through `rgb48le` (/65535), both with FFmpeg's swscale.
+ones through `rgb48le` (/65535), both with FFmpeg's swscale. They are display-encoded, as
+video stores them: the sequence's `colour_space` is "srgb" (the stream's own transfer curve,
+e.g. BT.709, is not converted).
 """
 
 from __future__ import annotations
@@ -207,7 +209,7 @@ class LoadVideo(Node):
     """Decode a video file's first video stream to RGB float32 frames."""
 
     type_name = "io.LoadVideo"
-    version = 1
+    version = 2  # 2: colour_space "srgb"
     kind = FRAMEWISE
 
     class Params(NodeParams):
@@ -215,16 +217,18 @@ class LoadVideo(Node):
         fps: float = Param(30.0, gt=0, description="Frames per second used when the stream "
                            "carries none (1/s).")
 
-    images = Out(ImageSequence, doc="RGB pixels (F, H, W, 3) float32 in [0, 1].")
+    images = Out(ImageSequence, doc="RGB pixels (F, H, W, 3) float32 in [0, 1], colour_space "
+                 "srgb.")
 
     def frame_count(self) -> int | None:
         return video_index(self.params.path).count
 
-    def input_files(self) -> list[Path]:
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        """The video file, whatever `frames` (every chunk reads the one file)."""
         return [Path(self.params.path)] if os.path.isfile(self.params.path) else []
 
     def run(self) -> dict[str, ImageSequence]:
         index = video_index(self.params.path)
         pixels = read_video_frames(self.params.path, self.frames, index)
         return {"images": ImageSequence(pixels=pixels, channels=["R", "G", "B"],
-                                        fps=index.fps or self.params.fps)}
+                                        fps=index.fps or self.params.fps, colour_space="srgb")}

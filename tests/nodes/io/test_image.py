@@ -9,14 +9,17 @@ import numpy as np
 import pytest
 
 from nodegraph import ImageSequence, NodeError, run_node
+from nodegraph.types import linear_to_srgb, srgb_to_linear
 from nodes.io._files import expand_frame_pattern
-from nodes.io.image import LoadImageSequence, SaveImageSequence, write_image
+from nodes.io.image import LoadImageSequence, SaveImageSequence, read_image, write_image
 
 
-def make_images(frames: int = 4, channels=("R", "G", "B", "A"), seed: int = 0) -> ImageSequence:
+def make_images(frames: int = 4, channels=("R", "G", "B", "A"), seed: int = 0,
+                colour_space: str = "srgb") -> ImageSequence:
     rng = np.random.default_rng(seed)
     pixels = rng.random((frames, 6, 7, len(channels))).astype(np.float32)
-    return ImageSequence(pixels=pixels, channels=list(channels), fps=25.0)
+    return ImageSequence(pixels=pixels, channels=list(channels), fps=25.0,
+                         colour_space=colour_space)
 
 
 def save(images: ImageSequence, path: str, frames: range | None = None, **params):
@@ -42,7 +45,8 @@ def quantize(pixels: np.ndarray, top: int) -> np.ndarray:
     ("img.%d.tif", "float", lambda p: p),
 ])
 def test_round_trip_each_format_and_depth(tmp_path, name, depth, reference):
-    images = make_images()
+    space = "linear" if depth in ("float", "half") else "srgb"  # the file's own: no conversion
+    images = make_images(colour_space=space)
     images.pixels[0, 0, 0, 0] = 1.5  # out of range: clipped by integer formats, kept by float
     path = str(tmp_path / name)
     files = save(images, path, bit_depth=depth, first_frame=1)["files"]
@@ -50,6 +54,7 @@ def test_round_trip_each_format_and_depth(tmp_path, name, depth, reference):
     assert files.sha256[2] == hashlib.sha256(open(files.paths[2], "rb").read()).hexdigest()
     back = load(path, fps=25.0)
     assert back.channels == ["R", "G", "B", "A"] and back.pixels.dtype == np.float32
+    assert back.colour_space == space
     np.testing.assert_allclose(back.pixels, reference(images.pixels), rtol=0, atol=1e-7)
 
 
@@ -92,7 +97,7 @@ def test_greyscale_png_has_one_channel(tmp_path):
 
 
 def test_chunked_load_equals_full_load_and_chunked_save(tmp_path):
-    images = make_images(6)
+    images = make_images(6, colour_space="linear")
     path = str(tmp_path / "c.%04d.exr")
     save(images.slice_frames(0, 3), path, range(0, 3))
     save(images.slice_frames(3, 6), path, range(3, 6))
@@ -160,3 +165,83 @@ def test_error_bad_save_choices(tmp_path):
     with pytest.raises(NodeError, match=r"'images'.*frame 1.*NaN"):
         save(nan, str(tmp_path / "n.%04d.png"))
     assert sorted(os.listdir(tmp_path)) == ["n.0000.png"]
+
+
+# -- colour space ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, depth, space", [
+    ("a.%04d.exr", "float", "linear"), ("a.%04d.exr", "half", "linear"),
+    ("a.%04d.tif", "float", "linear"), ("a.%04d.tif", "uint16", "srgb"),
+    ("a.%04d.tif", "uint8", "srgb"), ("a.%04d.png", "uint8", "srgb"),
+    ("a.%04d.png", "uint16", "srgb"), ("a.%04d.jpg", "uint8", "srgb"),
+])
+def test_loader_sets_colour_space_from_pixel_type(tmp_path, name, depth, space):
+    images = make_images(2, ("R", "G", "B"), colour_space=space)
+    save(images, str(tmp_path / name), bit_depth=depth)
+    assert load(str(tmp_path / name)).colour_space == space
+
+
+def test_loader_colour_space_param_declares_without_converting(tmp_path):
+    images = make_images(2, ("R", "G", "B"))
+    save(images, str(tmp_path / "a.%04d.png"), bit_depth="uint16")
+    auto = load(str(tmp_path / "a.%04d.png"))
+    declared = load(str(tmp_path / "a.%04d.png"), colour_space="linear")
+    assert declared.colour_space == "linear"
+    np.testing.assert_array_equal(declared.pixels, auto.pixels)
+
+
+def test_saver_encodes_linear_as_srgb_for_integer_files(tmp_path):
+    images = make_images(2, colour_space="linear")
+    path = str(tmp_path / "l.%04d.png")
+    save(images, path, bit_depth="uint16")
+    stored, _ = read_image(expand_frame_pattern(path, 1))
+    expected = images.pixels[1].astype(np.float64)
+    expected[..., :3] = linear_to_srgb(expected[..., :3])  # alpha is not converted
+    np.testing.assert_allclose(stored, quantize(expected.astype(np.float32), 65535), atol=1e-7)
+    back = load(path)
+    assert back.colour_space == "srgb"
+    np.testing.assert_allclose(back.to_linear().pixels, images.pixels, atol=1e-4)
+
+
+def test_saver_decodes_srgb_to_linear_for_float_files(tmp_path):
+    images = make_images(2, ("R", "G", "B", "A"), colour_space="srgb")
+    path = str(tmp_path / "s.%04d.exr")
+    save(images, path)
+    back = load(path)
+    assert back.colour_space == "linear"
+    np.testing.assert_array_equal(back.pixels[..., :3], srgb_to_linear(images.pixels[..., :3]))
+    np.testing.assert_array_equal(back.pixels[..., 3], images.pixels[..., 3])
+    np.testing.assert_allclose(back.to_srgb().pixels, images.pixels, atol=2e-6)
+
+
+def test_saver_colour_space_param_overrides_the_file_space(tmp_path):
+    images = make_images(1, ("R", "G", "B"), colour_space="linear")
+    path = str(tmp_path / "d.%04d.png")
+    save(images, path, bit_depth="uint16", colour_space="linear")  # e.g. a data map
+    back = load(path, colour_space="linear")
+    np.testing.assert_allclose(back.pixels, quantize(images.pixels, 65535), atol=1e-7)
+
+
+def test_error_frames_of_float_and_integer_pixels(tmp_path):
+    path = str(tmp_path / "m.%04d.tif")
+    save(make_images(3, ("R", "G", "B")), path, bit_depth="uint16")
+    write_image(expand_frame_pattern(path, 2), np.zeros((6, 7, 3), np.float32), list("RGB"), "float")
+    with pytest.raises(NodeError, match=r"frame 2 \(file '.*m\.0002\.tif'\): expected srgb pixels "
+                                        r"\(integer\).*found linear \(float\)"):
+        load(path)
+    assert load(path, colour_space="srgb").pixels.shape == (3, 6, 7, 3)
+
+
+# -- per-chunk input files -------------------------------------------------------------------
+
+def test_input_files_per_chunk(tmp_path):
+    path = str(tmp_path / "f.%04d.png")
+    save(make_images(6, ("R", "G", "B")), path, first_frame=10)
+    node = LoadImageSequence({"path": path})
+    names = lambda files: [os.path.basename(f) for f in files]  # noqa: E731
+    assert names(node.input_files()) == [f"f.{n:04d}.png" for n in range(10, 16)]
+    assert names(node.input_files(range(2, 4))) == ["f.0012.png", "f.0013.png"]
+    assert names(node.input_files(range(5, 8))) == ["f.0015.png"]  # beyond the files: none
+    pinned = LoadImageSequence({"path": path, "first_frame": 12})
+    assert names(pinned.input_files(range(0, 2))) == ["f.0012.png", "f.0013.png"]
+    assert node.input_files(range(0)) == []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -73,7 +75,7 @@ def test_lossless_round_trip_and_stream_metadata(tmp_path):
     assert LoadVideo({"path": path}).frame_count() == N
     out = load(path)
     assert out.pixels.shape == (N, H, W, 3) and out.pixels.dtype == np.float32
-    assert out.channels == ["R", "G", "B"] and out.fps == 24.0
+    assert out.channels == ["R", "G", "B"] and out.fps == 24.0 and out.colour_space == "srgb"
     np.testing.assert_array_equal(out.pixels, frames.astype(np.float32) / np.float32(255))
     for chunk in [range(3, 9), range(29, 30)]:
         np.testing.assert_array_equal(load(path, chunk).pixels, out.pixels[chunk.start:chunk.stop])
@@ -106,6 +108,14 @@ def test_late_chunk_seeks_instead_of_decoding_from_start(tmp_path, monkeypatch):
     assert seeks and seeks[0] is not None and seeks[0] > index.pts[0]
     monkeypatch.setattr(video, "_decode", decode)
     np.testing.assert_array_equal(late.pixels, load(path).pixels[24:27])
+
+
+def test_input_files_is_the_video_for_any_chunk(tmp_path):
+    path = lossy_video(tmp_path, make_frames(8))
+    node = LoadVideo({"path": path})
+    assert node.input_files() == node.input_files(range(2, 5)) == node.input_files(range(0)) \
+        == [Path(path)]
+    assert LoadVideo({"path": str(tmp_path / "none.mp4")}).input_files(range(0, 3)) == []
 
 
 # -- bad input -------------------------------------------------------------------------------
