@@ -5,9 +5,14 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterator, Sequence
 
-__all__ = ["write_text_atomic", "file_sha256"]
+if TYPE_CHECKING:
+    from .types import Files
+
+__all__ = ["write_text_atomic", "file_sha256", "atomic_path", "files_value"]
 
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
 
@@ -50,3 +55,48 @@ def file_sha256(path: str | os.PathLike, *, memo: bool = True) -> str:
     if memo:
         _FILE_HASHES[key] = digest.hexdigest()
     return digest.hexdigest()
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to `path`; on success move it onto `path` (os.replace).
+
+    For writers that open the file themselves (binary formats, libraries that take a path).
+    The temporary name keeps the extension of `path` (writers pick formats by extension) and
+    lives in the same folder (so the replace is atomic). Parent folders are created. The
+    file gets the usual permissions (0o666 minus the umask), not mkstemp's 0o600. On an
+    exception the temporary file is removed and `path` is left untouched.
+
+    Example:
+        >>> import tempfile
+        >>> target = Path(tempfile.mkdtemp()) / "out" / "a.txt"
+        >>> with atomic_path(target) as tmp:
+        ...     _ = tmp.write_text("hello")
+        >>> target.read_text()
+        'hello'
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def files_value(paths: Sequence[str | os.PathLike]) -> Files:
+    """Return the `Files` port value of just-written `paths` (kept as given) with their sha256.
+
+    Hashes what is on disk now (`file_sha256(..., memo=False)`: a rewritten file may keep the
+    size and mtime of its previous version).
+    """
+    from .types import Files
+
+    return Files(paths=[str(p) for p in paths], sha256=[file_sha256(p, memo=False) for p in paths])

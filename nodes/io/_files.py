@@ -1,4 +1,7 @@
-"""Shared file helpers of the io nodes: frame patterns, atomic writes, hashes, NPZ row reads.
+"""File helpers of the io nodes: frame patterns, extension formats, NPZ row reads.
+
+Atomic writes and the `Files` value of written paths are in `nodegraph.files` (`atomic_path`,
+`files_value`), shared with the other areas.
 
 Frame patterns name one file per frame with a single frame token:
 
@@ -11,24 +14,22 @@ A loader maps run frame `f` (0-based) to file number `first_frame + f`.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import struct
-import tempfile
 import zipfile
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Mapping, NamedTuple, Sequence
+from typing import Mapping, NamedTuple
 
 import numpy as np
 
-from nodegraph import Files, InputError
+from nodegraph import InputError
+from nodegraph.files import atomic_path, files_value  # noqa: F401  (still imported from here by image.py, camera.py)
 
 __all__ = [
     "FrameToken", "frame_token", "is_frame_pattern", "expand_frame_pattern", "find_frame_numbers",
-    "pattern_files", "frame_where", "check_frame_range", "atomic_path", "sha256_file", "files_value",
-    "format_of", "npz_keys", "npz_shape", "read_npz_rows", "read_npz_array",
+    "pattern_files", "frame_where", "check_frame_range", "format_of",
+    "npz_keys", "npz_shape", "read_npz_rows", "read_npz_array",
 ]
 
 _TOKEN = re.compile(r"%(0?)(\d*)d|(#+)|\{frame(?::0?(\d+)d)?\}")
@@ -140,48 +141,6 @@ def check_frame_range(frames: range, count: int, path: str) -> None:
         bad = frames.start if frames.start < 0 else frames[-1]
         raise InputError("path", f"frame {bad} (file '{path}'): expected a frame in 0..{count - 1}, "
                                  f"the file has {count} frame(s)")
-
-
-@contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to `path`; on success move it onto `path` (os.replace).
-
-    The temporary name keeps the extension of `path` (writers pick formats by extension)
-    and lives in the same folder (so the replace is atomic). Parent folders are created.
-    On an exception the temporary file is removed and `path` is left untouched.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
-
-def sha256_file(path: str | os.PathLike, block: int = 1 << 20) -> str:
-    """Return the sha256 (hex) of a file's bytes, read now.
-
-    Not `nodegraph.files.file_sha256`, which memoizes per (path, size, mtime): a saver may
-    rewrite a file with the same size within one mtime tick, and must hash what it wrote.
-    """
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(block), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def files_value(paths: Sequence[str | os.PathLike]) -> Files:
-    """Return the `Files` output of written `paths` (kept as given) with their sha256."""
-    return Files(paths=[str(p) for p in paths], sha256=[sha256_file(p) for p in paths])
 
 
 def format_of(path: str, formats: Mapping[str, str], param: str = "path") -> str:

@@ -22,19 +22,20 @@ import re
 import zipfile
 import zlib
 from pathlib import Path
-from typing import NamedTuple
-
 import numpy as np
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams,
                        Out, Param)
 
-from ._files import (atomic_path, check_frame_range, expand_frame_pattern, files_value, find_frame_numbers,
-                     format_of, frame_token, frame_where, npz_keys, npz_shape, pattern_files, read_npz_array,
-                     read_npz_rows)
+from nodegraph.files import atomic_path, files_value
+
+from ._files import (check_frame_range, expand_frame_pattern, find_frame_numbers, format_of, frame_token,
+                     frame_where, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
+from .mesh_frame import MeshFrame, check_frame, fan_triangulate
+from .usd import load_usd_mesh, save_usd_mesh, usd_mesh_frame_count
 
 __all__ = [
-    "MeshFrame", "fan_triangulate", "read_obj", "write_obj", "read_ply", "write_ply",
+    "read_obj", "write_obj", "read_ply", "write_ply",
     "mesh_frame_count", "load_mesh_sequence", "save_mesh_sequence", "LoadMeshSequence",
     "SaveMeshSequence", "SaveMeshFrames",
 ]
@@ -42,53 +43,6 @@ __all__ = [
 MESH_FORMATS = {".obj": "obj", ".ply": "ply", ".npz": "npz", ".usd": "usd", ".usda": "usd",
                 ".usdc": "usd"}
 _PER_FRAME_FORMATS = ("obj", "ply")
-
-
-class MeshFrame(NamedTuple):
-    """One mesh as read from a file.
-
-    Attributes:
-        vertices: (V, 3) float32, cm.
-        faces: (T, 3) int32 vertex indices.
-        uv: (U, 2) float32 or None.
-        uv_faces: (T, 3) int32 indices into `uv`, or None (then uv is per vertex).
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    uv: np.ndarray | None = None
-    uv_faces: np.ndarray | None = None
-
-
-# -- polygons ------------------------------------------------------------------------------
-
-def fan_triangulate(counts: np.ndarray) -> np.ndarray:
-    """Fan-triangulate polygons given their corner counts.
-
-    Args:
-        counts: (N,) int, corners of each polygon (>= 3), corners stored one polygon after
-            the other.
-    Returns:
-        (T, 3) int64 indices of corners (into the flat corner list), T = sum(counts - 2);
-        polygon (c0, c1, ..., cn) gives (c0, c1, c2), (c0, c2, c3), ...
-    Raises:
-        ValueError: when a polygon has fewer than 3 corners.
-
-    Example:
-        >>> fan_triangulate(np.array([3, 4])).tolist()
-        [[0, 1, 2], [3, 4, 5], [3, 5, 6]]
-    """
-    counts = np.asarray(counts, dtype=np.int64)
-    if counts.size and counts.min() < 3:
-        bad = int(np.argmax(counts < 3))
-        raise ValueError(f"counts: expected >= 3 corners per polygon, found {int(counts[bad])} "
-                         f"at polygon {bad}")
-    starts = np.cumsum(counts) - counts
-    tris = counts - 2
-    owner = np.repeat(np.arange(counts.size), tris)
-    k = np.arange(int(tris.sum())) - np.repeat(np.cumsum(tris) - tris, tris)
-    base = starts[owner]
-    return np.stack([base, base + k + 1, base + k + 2], axis=1)
 
 
 # -- OBJ -----------------------------------------------------------------------------------
@@ -234,25 +188,6 @@ def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
 
 # -- helpers --------------------------------------------------------------------------------
 
-def _check_frame(frame: int, file: str, vertices: np.ndarray, faces: np.ndarray,
-                 ref: MeshFrame | None, ref_file: str) -> None:
-    """Raise InputError when a frame's vertices are not finite or its topology differs."""
-    if ref is not None:
-        if vertices.shape[0] != ref.vertices.shape[0]:
-            raise InputError("path", f"{frame_where(frame, file)}: expected {ref.vertices.shape[0]} "
-                                     f"vertices as in frame 0 ('{ref_file}'), found {vertices.shape[0]}")
-        if faces is not None and not np.array_equal(faces, ref.faces):
-            detail = (f"{len(faces)} faces vs {len(ref.faces)}" if faces.shape != ref.faces.shape else
-                      f"first different face {int(np.argmax((faces != ref.faces).any(axis=1)))}")
-            raise InputError("path", f"{frame_where(frame, file)}: expected the faces of frame 0 "
-                                     f"('{ref_file}'), found different topology ({detail})")
-    bad = ~np.isfinite(vertices)
-    if bad.any():
-        vertex = int(np.argwhere(bad)[0][0])
-        raise InputError("path", f"{frame_where(frame, file)}: expected finite vertices, found "
-                                 f"NaN/inf at vertex {vertex}")
-
-
 def _resolve_first(path: str, first_frame: int | None) -> tuple[int | None, list[int]]:
     numbers = find_frame_numbers(path)
     if first_frame is not None:
@@ -287,12 +222,12 @@ def _load_numbered(path: str, fmt: str, frames: range, first_frame: int | None,
         raise _no_files(path)
     ref_file = expand_frame_pattern(path, first)
     ref = _read_mesh_file(ref_file, fmt, 0)
-    _check_frame(0, ref_file, ref.vertices, None, None, ref_file)
+    check_frame(0, ref_file, ref.vertices, None, None, ref_file)
     out = np.empty((len(frames), ref.vertices.shape[0], 3), np.float32)
     for i, f in enumerate(frames):
         file = expand_frame_pattern(path, first + f)
         data = ref if f == 0 else _read_mesh_file(file, fmt, f)
-        _check_frame(f, file, data.vertices, data.faces, ref, ref_file)
+        check_frame(f, file, data.vertices, data.faces, ref, ref_file)
         out[i] = data.vertices
     return MeshSequence(vertices=out, faces=ref.faces, uv=ref.uv, uv_faces=ref.uv_faces, fps=fps)
 
@@ -367,7 +302,6 @@ def mesh_frame_count(path: str, *, prim: str = "", first_frame: int | None = Non
         except (KeyError, ValueError, OSError, IndexError, zipfile.BadZipFile):
             return 0
     if fmt == "usd":
-        from .usd import usd_mesh_frame_count  # imports mesh at its top: import here, not there
         return usd_mesh_frame_count(path, prim)
     raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
                              f"{fmt.upper()} files, found a single file name")
@@ -401,7 +335,6 @@ def load_mesh_sequence(path: str, frames: range, *, prim: str = "", first_frame:
             raise InputError("path", f"file '{path}': expected an .npz file, found it missing")
         return _load_npz(path, frames, fps)
     if fmt == "usd":
-        from .usd import load_usd_mesh
         return load_usd_mesh(path, frames, prim, fps)
     raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
                              f"{fmt.upper()} files, found a single file name")
@@ -434,7 +367,6 @@ def save_mesh_sequence(path: str, mesh: MeshSequence, frames: range, *, first_fr
         if fmt == "npz":
             _save_npz(path, mesh, compress)
         else:
-            from .usd import save_usd_mesh
             save_usd_mesh(path, mesh, frames, prim)
         return [path]
     if fmt == "ply" and mesh.uv_faces is not None:

@@ -27,9 +27,10 @@ import numpy as np
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param,
                        ParamSequence, RigidSequence)
+from nodegraph.files import atomic_path, files_value
 
-from ._files import (atomic_path, check_frame_range, files_value, format_of, frame_where, npz_keys, npz_shape,
-                     read_npz_array, read_npz_rows)
+from ._files import (check_frame_range, format_of, frame_where, npz_keys, npz_shape, read_npz_array,
+                     read_npz_rows)
 
 __all__ = [
     "CONVENTION", "load_rigid_sequence", "save_rigid_sequence", "load_param_sequence",

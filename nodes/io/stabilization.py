@@ -8,8 +8,7 @@ import numpy as np
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence
-
-from ._files import atomic_path, files_value
+from nodegraph.files import atomic_path, files_value
 
 __all__ = ["save_stabilization", "SaveStabilization"]
 

@@ -21,8 +21,10 @@ import numpy as np
 
 from nodegraph import InputError, MeshSequence
 
-from ._files import atomic_path, check_frame_range
-from .mesh import MeshFrame, _check_frame, fan_triangulate
+from nodegraph.files import atomic_path
+
+from ._files import check_frame_range
+from .mesh_frame import MeshFrame, check_frame, fan_triangulate
 
 __all__ = ["usd_mesh_frame_count", "load_usd_mesh", "save_usd_mesh"]
 
@@ -159,7 +161,7 @@ def load_usd_mesh(path: str, frames: range, prim: str = "", fps: float = 30.0) -
             frame_faces = _usd_topology(mesh, times[f])[0] if varying and f else None
         except ValueError as err:
             raise InputError("path", f"frame {f} ({where}): expected a valid mesh, found {err}") from err
-        _check_frame(f, path, vertices, frame_faces, ref if f else None, path)
+        check_frame(f, path, vertices, frame_faces, ref if f else None, path)
         out[i] = vertices
     return MeshSequence(vertices=out, faces=faces, uv=uv, uv_faces=uv_faces,
                         groups=_usd_groups(mesh), fps=fps)

@@ -21,8 +21,8 @@ from matplotlib.figure import Figure
 from scipy.spatial.transform import Rotation
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
+from nodegraph.files import atomic_path, files_value
 
-from ..io._files import atomic_path, files_value
 from ..geometry.rigid import apply_rigid, invert_rigid
 
 __all__ = [

@@ -8,10 +8,9 @@ from pathlib import Path
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence, Table
-from nodegraph.files import write_text_atomic
+from nodegraph.files import files_value, write_text_atomic
 
 from .metrics import StabilizationErrors, stabilization_errors
-from ..io._files import files_value
 from .plots import plot_head_motion, plot_position_histograms, stabilize_points
 
 __all__ = ["error_table", "StabilizationReport"]

@@ -11,10 +11,10 @@ import pytest
 import trimesh
 
 from nodegraph import InputError, MeshSequence, NodeError, run_node
-from nodes.io._files import (atomic_path, expand_frame_pattern, find_frame_numbers, frame_token,
-                             read_npz_rows)
-from nodes.io.mesh import (LoadMeshSequence, SaveMeshFrames, SaveMeshSequence, fan_triangulate,
-                           read_obj)
+from nodegraph.files import atomic_path, files_value
+from nodes.io._files import expand_frame_pattern, find_frame_numbers, frame_token, read_npz_rows
+from nodes.io.mesh import LoadMeshSequence, SaveMeshFrames, SaveMeshSequence, read_obj
+from nodes.io.mesh_frame import fan_triangulate
 
 FORMATS = ["face.%04d.obj", "face.####.ply", "seq.npz", "seq.usda", "seq.usdc"]
 
@@ -79,6 +79,17 @@ def test_atomic_path_leaves_target_untouched_on_error(tmp_path):
             raise RuntimeError("writer crashed")
     assert target.read_text() == "one"
     assert sorted(os.listdir(target.parent)) == ["out.txt"]
+
+
+def test_files_value_hashes_a_rewritten_file_of_the_same_size(tmp_path):
+    target = tmp_path / "out.txt"
+    hashes = []
+    for text in ("aaaa", "bbbb"):  # same size, possibly the same mtime tick
+        with atomic_path(target) as tmp:
+            tmp.write_text(text)
+        hashes.append(files_value([target]).sha256[0])
+    assert hashes == [hashlib.sha256(b"aaaa").hexdigest(), hashlib.sha256(b"bbbb").hexdigest()]
+    assert files_value([target]).paths == [str(target)]
 
 
 @pytest.mark.parametrize("compressed", [False, True])

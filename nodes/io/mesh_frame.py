@@ -1,0 +1,89 @@
+"""One mesh as read from a file, and the checks and polygon helpers its readers share.
+
+Shared by the mesh-sequence readers of `nodes.io.mesh` (OBJ, PLY, NPZ) and `nodes.io.usd`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from nodegraph import InputError
+
+from ._files import frame_where
+
+__all__ = ["MeshFrame", "fan_triangulate", "check_frame"]
+
+
+class MeshFrame(NamedTuple):
+    """One mesh as read from a file.
+
+    Attributes:
+        vertices: (V, 3) float32, cm.
+        faces: (T, 3) int32 vertex indices.
+        uv: (U, 2) float32 or None.
+        uv_faces: (T, 3) int32 indices into `uv`, or None (then uv is per vertex).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    uv_faces: np.ndarray | None = None
+
+
+def fan_triangulate(counts: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons given their corner counts.
+
+    Args:
+        counts: (N,) int, corners of each polygon (>= 3), corners stored one polygon after
+            the other.
+    Returns:
+        (T, 3) int64 indices of corners (into the flat corner list), T = sum(counts - 2);
+        polygon (c0, c1, ..., cn) gives (c0, c1, c2), (c0, c2, c3), ...
+    Raises:
+        ValueError: when a polygon has fewer than 3 corners.
+
+    Example:
+        >>> fan_triangulate(np.array([3, 4])).tolist()
+        [[0, 1, 2], [3, 4, 5], [3, 5, 6]]
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    if counts.size and counts.min() < 3:
+        bad = int(np.argmax(counts < 3))
+        raise ValueError(f"counts: expected >= 3 corners per polygon, found {int(counts[bad])} "
+                         f"at polygon {bad}")
+    starts = np.cumsum(counts) - counts
+    tris = counts - 2
+    owner = np.repeat(np.arange(counts.size), tris)
+    k = np.arange(int(tris.sum())) - np.repeat(np.cumsum(tris) - tris, tris)
+    base = starts[owner]
+    return np.stack([base, base + k + 1, base + k + 2], axis=1)
+
+
+def check_frame(frame: int, file: str, vertices: np.ndarray, faces: np.ndarray | None,
+                ref: MeshFrame | None, ref_file: str) -> None:
+    """Raise InputError (param "path") when a frame's vertices are not finite or its topology differs.
+
+    Args:
+        frame: run frame, named in the error.
+        file: the frame's file, named in the error.
+        vertices: (V, 3) the frame's vertices.
+        faces: (T, 3) its faces, or None to skip the topology check.
+        ref: frame 0 to compare with, or None (frame 0 itself).
+        ref_file: frame 0's file, named in the error.
+    """
+    if ref is not None:
+        if vertices.shape[0] != ref.vertices.shape[0]:
+            raise InputError("path", f"{frame_where(frame, file)}: expected {ref.vertices.shape[0]} "
+                                     f"vertices as in frame 0 ('{ref_file}'), found {vertices.shape[0]}")
+        if faces is not None and not np.array_equal(faces, ref.faces):
+            detail = (f"{len(faces)} faces vs {len(ref.faces)}" if faces.shape != ref.faces.shape else
+                      f"first different face {int(np.argmax((faces != ref.faces).any(axis=1)))}")
+            raise InputError("path", f"{frame_where(frame, file)}: expected the faces of frame 0 "
+                                     f"('{ref_file}'), found different topology ({detail})")
+    bad = ~np.isfinite(vertices)
+    if bad.any():
+        vertex = int(np.argwhere(bad)[0][0])
+        raise InputError("path", f"{frame_where(frame, file)}: expected finite vertices, found "
+                                 f"NaN/inf at vertex {vertex}")
