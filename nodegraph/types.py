@@ -324,7 +324,7 @@ def srgb_to_linear(values: np.ndarray) -> np.ndarray:
         (...) float32 linear values.
 
     Example:
-        >>> srgb_to_linear(np.array([0.0, 0.5, 1.0])).round(6).tolist()
+        >>> [round(float(v), 6) for v in srgb_to_linear(np.array([0.0, 0.5, 1.0]))]
         [0.0, 0.214041, 1.0]
     """
     c = np.asarray(values, np.float64)

@@ -86,3 +86,44 @@ def test_port_type_lookup():
     assert port_type_by_name("MeshSequence") is MeshSequence
     with pytest.raises(KeyError, match="unknown port type"):
         port_type_by_name("Nope")
+
+
+# -- ImageSequence colour space ---------------------------------------------------------------
+
+def test_srgb_curve_matches_the_standard_and_inverts():
+    from nodegraph.types import linear_to_srgb, srgb_to_linear
+
+    c = np.linspace(-0.1, 1.2, 2001)
+    ref = np.array([v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4 for v in c])
+    np.testing.assert_allclose(srgb_to_linear(c), ref, rtol=1e-6, atol=1e-9)
+    assert srgb_to_linear(np.array([0.04045]))[0] == np.float32(0.04045 / 12.92)
+    np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(c)), c, rtol=1e-6, atol=1e-7)
+    assert srgb_to_linear(np.array([0.0, 1.0])).tolist() == [0.0, 1.0]
+
+
+def test_image_colour_conversion_leaves_alpha_and_returns_new_values(rng):
+    pixels = rng.random((2, 3, 4, 4)).astype(np.float32)
+    images = ImageSequence(pixels.copy(), ["R", "G", "B", "A"])
+    assert images.colour_space == "srgb" and images.to_srgb() is images
+    lin = images.to_linear()
+    assert lin.colour_space == "linear" and images.colour_space == "srgb"
+    np.testing.assert_array_equal(images.pixels, pixels)  # unchanged
+    np.testing.assert_array_equal(lin.pixels[..., 3], pixels[..., 3])
+    assert (lin.pixels[..., :3] <= pixels[..., :3] + 1e-7).all()
+    np.testing.assert_allclose(lin.to_srgb().pixels, pixels, atol=2e-6)
+    layered = ImageSequence(pixels.copy(), ["diffuse.R", "diffuse.G", "Z", "diffuse.A"])
+    assert layered.colour_channels() == [0, 1]
+
+
+def test_image_colour_space_is_validated_stored_and_refused_across_chunks(rng):
+    images = ImageSequence(rng.random((4, 2, 2, 3)).astype(np.float32), colour_space="linear")
+    back = ImageSequence.from_arrays(images.to_arrays())
+    assert back.colour_space == "linear" and back.fingerprint() == images.fingerprint()
+    assert images.fingerprint() != images.to_srgb().fingerprint()
+    with pytest.raises(ValueError, match=r"'colour_space' must be one of \['linear', 'srgb'\], "
+                                         r"found 'rec709'"):
+        ImageSequence(images.pixels, colour_space="rec709").validate()
+    parts = [images.slice_frames(0, 2), images.slice_frames(2, 4)]
+    np.testing.assert_array_equal(ImageSequence.concat_frames(parts).pixels, images.pixels)
+    with pytest.raises(ValueError, match=r"chunk 1 has colour_space 'srgb', chunk 0 has 'linear'"):
+        ImageSequence.concat_frames([parts[0], parts[1].to_srgb()])
