@@ -7,23 +7,25 @@ median absolute deviation per vertex and coordinate, cm).
 
 Figures are drawn on `matplotlib.figure.Figure` objects (no pyplot state, safe in threads) and
 written atomically: a temporary name in the same folder, then `os.replace`.
+matplotlib and scipy are imported inside the functions that draw (not at import: `import nodes`
+stays light).
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Mapping, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Mapping, NamedTuple, Sequence
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from scipy.spatial.transform import Rotation
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 from nodegraph.files import atomic_path, files_value
 
 from ..geometry.rigid import apply_rigid, invert_rigid
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = [
     "rigid_to_euler_translation", "stabilize_points", "default_vertices",
@@ -47,6 +49,8 @@ def rigid_to_euler_translation(matrices: np.ndarray) -> tuple[np.ndarray, np.nda
         raise ValueError(f"matrices: expected shape (F, 4, 4), found {matrices.shape}")
     if len(matrices) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
+    from scipy.spatial.transform import Rotation
+
     angles = Rotation.from_matrix(matrices[:, :3, :3]).as_euler("xyz", degrees=True)
     return angles, matrices[:, :3, 3].copy()
 
@@ -124,6 +128,8 @@ def position_spread(world: np.ndarray, skull: np.ndarray | Mapping[str, np.ndarr
 
 def save_figure(fig: Figure, path: str | os.PathLike) -> Path:
     """Write `fig` as PNG atomically (`atomic_path`: temp file in the same folder, then os.replace)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     FigureCanvasAgg(fig)
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
         fig.savefig(handle, format="png", dpi=100)
@@ -146,6 +152,8 @@ def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,
     """
     if not curves:
         raise ValueError("curves: expected at least one label -> (F, 4, 4) matrices, found none")
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(12, 6), layout="constrained")
     axes = fig.subplots(2, 3, sharex=True)
     for label, matrices in curves.items():
@@ -190,6 +198,8 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
     spread = position_spread(world, skull, vertices)
     skulls = _as_mapping(skull)
     ids = default_vertices(world.shape[1]) if vertices is None else np.asarray(vertices, np.int64)
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(12, 2.6 * max(len(ids), 1)), layout="constrained")
     axes = np.atleast_2d(fig.subplots(max(len(ids), 1), 3, squeeze=False))
     for row, vertex in enumerate(ids):

@@ -14,14 +14,12 @@ import dataclasses
 from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, RigidSequence)
 
 from ..geometry.rigid import apply_rigid, fit_rigid, invert_rigid, rigid_matrix
 from ..geometry.sampling import farthest_point_sampling
-from .icp import robust_icp, vertex_normals
 
 __all__ = [
     "triangle_quality", "three_point_frames", "spread_triple",
@@ -306,6 +304,10 @@ class ICP(Node):
     stabilized = Out(MeshSequence, doc=_STAB_DOC)
 
     def run(self, mesh: MeshSequence, reference: MeshSequence) -> dict:
+        from scipy.spatial import cKDTree
+
+        from .icp import robust_icp, vertex_normals
+
         p = self.params
         ref = _check_reference(reference, mesh)
         idx = _group(mesh, p.group)

@@ -9,13 +9,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import torch
 from pydantic import model_validator
 
 from nodegraph import SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 
 from ..geometry.rigid import stabilize_vertices
-from .mode_pursuit import mode_pursuit
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS
 
 __all__ = ["ModePursuit", "ModePursuitParams"]
@@ -106,6 +104,10 @@ class ModePursuit(Node):
                 raise InputError("rest", f"expected {mesh.num_vertices} vertices (as 'mesh'), "
                                          f"found {rest.num_vertices}")
             rest_vertices = rest.vertices[0]
+        import torch
+
+        from .mode_pursuit import mode_pursuit
+
         if p.device.startswith("cuda") and not torch.cuda.is_available():
             raise InputError("device", f"expected an available device, found '{p.device}' but CUDA "
                                        f"is not available (use 'auto' or 'cpu')")
