@@ -22,13 +22,13 @@ import numpy as np
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 from nodegraph.files import atomic_path, files_value
 
-from ..geometry.rigid import apply_rigid, invert_rigid
+from ..geometry.rigid import stabilize_vertices
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = [
-    "rigid_to_euler_translation", "stabilize_points", "default_vertices",
+    "rigid_to_euler_translation", "default_vertices",
     "PositionSpread", "position_spread", "plot_head_motion", "plot_position_histograms",
     "save_figure", "CaptureReport",
 ]
@@ -53,18 +53,6 @@ def rigid_to_euler_translation(matrices: np.ndarray) -> tuple[np.ndarray, np.nda
 
     angles = Rotation.from_matrix(matrices[:, :3, :3]).as_euler("xyz", degrees=True)
     return angles, matrices[:, :3, 3].copy()
-
-
-def stabilize_points(matrices: np.ndarray, world: np.ndarray) -> np.ndarray:
-    """Bring world points into the skull frame: `x_skull = M_f^-1 x_world`.
-
-    Args:
-        matrices: (F, 4, 4) float64 skull-to-world.
-        world: (F, V, 3) cm, world frame.
-    Returns:
-        (F, V, 3) float32 cm, skull frame.
-    """
-    return apply_rigid(invert_rigid(matrices), world).astype(np.float32)
 
 
 def default_vertices(count_vertices: int, count: int = 4) -> np.ndarray:
@@ -246,7 +234,7 @@ class CaptureReport(Node):
         if vertices is not None and (min(vertices) < 0 or max(vertices) >= v):
             raise InputError("vertices", f"expected indices in 0..{v - 1}, found {vertices}")
         folder = Path(self.params.folder)
-        skull = stabilize_points(rigid.matrices, capture.vertices)
+        skull = stabilize_vertices(capture.vertices, rigid.matrices)
         self.progress(0.1, "head motion")
         paths = [plot_head_motion({"rigid": rigid.matrices}, folder / "head_motion.png", capture.fps)]
         self.progress(0.5, "histograms")

@@ -10,8 +10,9 @@ from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeP
 from nodegraph import RigidSequence, Table
 from nodegraph.files import files_value, write_text_atomic
 
+from ..geometry.rigid import stabilize_vertices
 from .metrics import StabilizationErrors, stabilization_errors
-from .plots import plot_head_motion, plot_position_histograms, stabilize_points
+from .plots import plot_head_motion, plot_position_histograms
 
 __all__ = ["error_table", "StabilizationReport"]
 
@@ -102,7 +103,7 @@ class StabilizationReport(Node):
         self.progress(0.2, "errors measured")
         written.append(plot_head_motion(curves, folder / "head_motion.png", fps=capture.fps))
         self.progress(0.5, "head motion plotted")
-        skulls = {label: stabilize_points(m, capture.vertices) for label, m in curves.items()}
+        skulls = {label: stabilize_vertices(capture.vertices, m) for label, m in curves.items()}
         written.append(plot_position_histograms(capture.vertices, skulls, folder / "histograms.png", ids))
         paths = [str(p) for p in written]
         return {"files": files_value(paths), "table": table}

@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 from nodegraph import Files, NodeError, RigidSequence, run_node
 from nodes.io.face_model import load_face_model
 from nodes.report.plots import (CaptureReport, plot_head_motion, plot_position_histograms, position_spread,
-                                rigid_to_euler_translation, stabilize_points)
-from nodes.geometry.rigid import invert_rigid
+                                rigid_to_euler_translation)
+from nodes.geometry.rigid import invert_rigid, stabilize_vertices
 from nodes.synth.performance import generate_performance
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -42,18 +42,18 @@ def test_rigid_to_euler_translation_matches_scipy():
         rigid_to_euler_translation(m[:, :3, :3])
 
 
-def test_invert_rigid_and_stabilize_points_round_trip(perf):
+def test_invert_rigid_and_stabilize_vertices_round_trip(perf):
     m = perf.rigid.matrices
     np.testing.assert_allclose(invert_rigid(m), np.linalg.inv(m), atol=1e-12)
     world = perf.capture.vertices
-    skull = stabilize_points(m, world)
+    skull = stabilize_vertices(world, m)
     # noise 0.01 cm is all that separates the capture brought back from the truth
     np.testing.assert_allclose(skull, perf.stabilized.vertices, atol=0.08)
     assert abs(float((skull - perf.stabilized.vertices).std()) - 0.01) < 0.001
 
 
 def test_position_spread_skull_sharper_than_world(perf):
-    skull = stabilize_points(perf.rigid.matrices, perf.capture.vertices)
+    skull = stabilize_vertices(perf.capture.vertices, perf.rigid.matrices)
     spread = position_spread(perf.capture.vertices, {"truth": perf.stabilized.vertices, "est": skull},
                              vertices=[0, 50, 199])
     assert spread.world.shape == (3, 3) and set(spread.skull) == {"truth", "est"}
