@@ -42,7 +42,7 @@ from .types import PortType
 
 __all__ = [
     "Kind", "FRAMEWISE", "SEQUENCE", "windowed", "In", "Out", "Node", "NodeParams", "Param",
-    "run_node", "execute", "wrap_error", "format_validation_error", "task_seed", "path_params",
+    "run_node", "execute", "wrap_error", "format_validation_error", "task_seed", "path_params", "Index",
 ]
 
 
@@ -202,6 +202,10 @@ def Param(default: Any = ..., *, description: str = "", affects_output: bool = T
         return Field(default_factory=lambda: type(value)(value), description=description,
                      json_schema_extra=extra, **constraints)
     return Field(default, description=description, json_schema_extra=extra, **constraints)
+
+
+Index = Annotated[int, Field(ge=0)]
+"""A non-negative integer (vertex, frame or landmark index): `vertices: list[Index]`."""
 
 
 def _field_flag(model: type[BaseModel], name: str, flag: str, default: bool) -> bool:

@@ -4,18 +4,23 @@ They work on `ParamSequence` values (one float column) so results are easy to ch
 `test.Ramp` produces `value[f] = start + slope * f` for absolute frame f, `test.Scale`
 multiplies (framewise), `test.MovingAverage` averages over a window (windowed), `test.CumSum`
 sums over the whole sequence (sequence), `test.Fail` raises on chosen frames, and
-`test.Sum` adds two sequences. Import this module to register them.
+`test.Sum` adds two sequences, `test.Weighted` weights a list port by position, `test.Noise`
+draws from the task's seed, `test.WriteText` / `test.ReadText` write and read numbered text
+files. Import this module to register them.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
 from .node import FRAMEWISE, SEQUENCE, In, Node, NodeParams, Out, Param, windowed
-from .types import JsonValue, ParamSequence
+from .types import Files, JsonValue, ParamSequence
 
-__all__ = ["Ramp", "Scale", "MovingAverage", "CumSum", "Fail", "Sum", "Total", "Offset"]
+__all__ = ["Ramp", "Scale", "MovingAverage", "CumSum", "Fail", "Sum", "Total", "Offset", "Weighted", "Noise",
+           "WriteText", "ReadText"]
 
 
 def _column(values: np.ndarray) -> ParamSequence:
@@ -181,3 +186,96 @@ class Offset(Node):
 
     def run(self, values: ParamSequence) -> dict:
         return {"shifted": ParamSequence(values.values + np.float32(self.params.offset), list(values.names))}
+
+
+class Weighted(Node):
+    """A list port: sum_i (i + 1) * values_i, so that the order of connections shows (framewise)."""
+
+    type_name = "test.Weighted"
+    kind = FRAMEWISE
+
+    class Params(NodeParams):
+        pass
+
+    values = In(ParamSequence, many=True)
+    total = Out(ParamSequence)
+
+    def run(self, values: list[ParamSequence]) -> dict:
+        out = sum(np.float32(i + 1) * v.values for i, v in enumerate(values))
+        return {"total": ParamSequence(np.asarray(out, np.float32), list(values[0].names))}
+
+
+class Noise(Node):
+    """Random values from the task's seed (framewise), named after the device the node got."""
+
+    type_name = "test.Noise"
+    kind = FRAMEWISE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        pass
+
+    values = In(ParamSequence)
+    noise = Out(ParamSequence)
+
+    def run(self, values: ParamSequence) -> dict:
+        rng = np.random.default_rng(self.seed)
+        where = self._device if self._device != "auto" else "auto"
+        try:
+            from distributed import get_worker
+
+            where += "@" + get_worker().address
+        except (ImportError, ValueError):
+            pass
+        return {"noise": ParamSequence(rng.standard_normal(values.values.shape).astype(np.float32), [where])}
+
+
+class WriteText(Node):
+    """Write each frame's value to numbered text files, or all to one file (a writer node)."""
+
+    type_name = "test.WriteText"
+    kind = FRAMEWISE
+    writes_files = True
+
+    class Params(NodeParams):
+        path: str = Param(..., output_file=True, description="File, or pattern with {frame} for one per frame.")
+
+    values = In(ParamSequence)
+    files = Out(Files)
+
+    def run(self, values: ParamSequence) -> dict:
+        from .files import file_sha256, write_text_atomic
+
+        rows = values.values[:, 0]
+        if "{frame}" in self.params.path:
+            paths = [self.params.path.format(frame=f) for f in self.frames]
+            for path, value in zip(paths, rows):
+                write_text_atomic(path, f"{value!r}\n")
+        else:
+            paths = [self.params.path.format(start=self.frames.start)]
+            write_text_atomic(paths[0], "".join(f"{v!r}\n" for v in rows))
+        return {"files": Files(paths, [file_sha256(p, memo=False) for p in paths])}
+
+
+class ReadText(Node):
+    """A framewise source reading one number per frame from numbered text files ({frame})."""
+
+    type_name = "test.ReadText"
+    kind = FRAMEWISE
+
+    class Params(NodeParams):
+        path: str = Param(..., input_file=True, description="Pattern with {frame}.")
+        num_frames: int = Param(..., ge=1, description="Frames to read.")
+
+    values = Out(ParamSequence)
+
+    def frame_count(self) -> int:
+        return self.params.num_frames
+
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        frames = range(self.params.num_frames) if frames is None else frames
+        return [Path(self.params.path.format(frame=f)) for f in frames]
+
+    def run(self) -> dict:
+        rows = [float(Path(self.params.path.format(frame=f)).read_text()) for f in self.frames]
+        return {"values": _column(np.asarray(rows))}

@@ -345,10 +345,10 @@ class SaveImageSequence(Node):
     type_name = "io.SaveImageSequence"
     version = 2  # 2: converts to the file's colour space
     kind = FRAMEWISE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        path: str = Param(..., description="Numbered pattern with extension .exr, .png, .tif, "
+        path: str = Param(..., output_file=True, description="Numbered pattern with extension .exr, .png, .tif, "
                           ".tiff, .jpg or .jpeg.")
         first_frame: int = Param(0, description="File number of run frame 0.")
         bit_depth: BitDepth = Param("auto", description="auto (EXR float, PNG uint8, TIFF uint16, "

@@ -413,8 +413,19 @@ class LoadMeshSequence(Node):
             load_mesh_sequence(p.path, range(0, 1), prim=p.prim, first_frame=p.first_frame, fps=p.fps)
         return count
 
-    def input_files(self) -> list[Path]:
-        return pattern_files(self.params.path)
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        """All files; for a chunk of numbered files, the first file (every chunk reads its
+        topology) and the chunk's own frames' files only."""
+        p = self.params
+        if frames is None or frame_token(p.path) is None:
+            return pattern_files(p.path)
+        if not hasattr(self, "_first_number"):
+            self._first_number = _resolve_first(p.path, p.first_frame)[0]
+        first = self._first_number
+        if first is None:
+            return []
+        files = [Path(expand_frame_pattern(p.path, n)) for n in sorted({first} | {first + f for f in frames})]
+        return [f for f in files if f.is_file()]
 
     def run(self) -> dict[str, MeshSequence]:
         p = self.params

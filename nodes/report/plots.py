@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
+from nodegraph import SEQUENCE, Files, In, Index, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 from nodegraph.files import atomic_path, files_value
 
 from ..geometry.rigid import stabilize_vertices
@@ -218,7 +218,7 @@ class CaptureReport(Node):
 
     class Params(NodeParams):
         folder: str = Param("report", output_file=True, description="output folder (created if missing)")
-        vertices: list[int] = Param([], description="vertices for the histograms; [] = 4 evenly "
+        vertices: list[Index] = Param([], description="vertices for the histograms; [] = 4 evenly "
                                                     "spaced")
 
     capture = In(MeshSequence, doc="captured world-space mesh (cm)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
+from nodegraph import SEQUENCE, Files, In, Index, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence, Table
 from nodegraph.files import files_value, write_text_atomic
 
@@ -16,7 +16,6 @@ from .plots import plot_head_motion, plot_position_histograms
 
 __all__ = ["error_table", "StabilizationReport"]
 
-ESTIMATE_PORTS = ("estimate_1", "estimate_2", "estimate_3", "estimate_4")
 COLUMNS = ["method", "median_cm", "mean_cm", "p95_cm", "rot_median_deg", "rot_max_deg", "trans_median_cm"]
 
 
@@ -37,7 +36,7 @@ def _markdown(table: Table) -> str:
 
 
 class StabilizationReport(Node):
-    """Write a folder comparing up to four stabilizations of a capture (with ground truth when given).
+    """Write a folder comparing any number of stabilizations of a capture (with ground truth when given).
 
     Files: `head_motion.png` (truth and each estimate), `histograms.png` (vertex positions over
     time in world vs each estimate's skull frame), and with ground truth `errors.md` /
@@ -46,34 +45,37 @@ class StabilizationReport(Node):
     """
 
     type_name = "report.StabilizationReport"
-    version = 1
+    version = 2
+    # v1 had four optional ports estimate_1..estimate_4; v2 has one list port, in edge order.
+    port_renames = {1: {f"estimate_{i}": "estimates" for i in range(1, 5)}}
     kind = SEQUENCE
     writes_files = True
 
     class Params(NodeParams):
         folder: str = Param("out/report", output_file=True, description="Output folder (created).")
-        labels: list[str] = Param(["estimate_1", "estimate_2", "estimate_3", "estimate_4"],
-                                  description="Names of estimate_1..estimate_4 in the table and plots.")
-        histogram_vertices: list[int] = Param([], description="Vertices shown in histograms.png; empty = 4 "
+        labels: list[str] = Param([], description="Names of the estimates, in the order of their "
+                                  "connections; missing names are estimate_1, estimate_2, ...")
+        histogram_vertices: list[Index] = Param([], description="Vertices shown in histograms.png; empty = 4 "
                                               "evenly spaced vertices of the mesh.")
 
     capture = In(MeshSequence, doc="Captured mesh sequence, world, cm.")
     truth_rigid = In(RigidSequence, optional=True, doc="True skull-to-world transforms.")
     truth = In(MeshSequence, optional=True, doc="True noise-free skull-frame mesh, cm.")
-    estimate_1 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
-    estimate_2 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
-    estimate_3 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
-    estimate_4 = In(RigidSequence, optional=True, doc="A stabilization (skull-to-world).")
+    estimates = In(RigidSequence, many=True, optional=True,
+                   doc="Stabilizations to compare (skull-to-world), in connection order.")
     files = Out(Files, doc="The files written.")
     table = Out(Table, doc="Error table (empty without ground truth).")
 
     def run(self, capture: MeshSequence, truth_rigid: RigidSequence | None, truth: MeshSequence | None,
-            **estimates: RigidSequence | None) -> dict:
-        labels = list(self.params.labels) + list(ESTIMATE_PORTS)[len(self.params.labels):]
-        given = {labels[i]: estimates[port].matrices for i, port in enumerate(ESTIMATE_PORTS)
-                 if estimates.get(port) is not None}
+            estimates: list[RigidSequence]) -> dict:
+        labels = list(self.params.labels) + [f"estimate_{i + 1}" for i in range(len(self.params.labels),
+                                                                                  len(estimates))]
+        if len(set(labels[:len(estimates)])) < len(estimates):
+            raise InputError("labels", f"expected distinct names for the {len(estimates)} estimates, "
+                                       f"found {labels[:len(estimates)]}")
+        given = {labels[i]: estimate.matrices for i, estimate in enumerate(estimates)}
         if not given and truth_rigid is None:
-            raise InputError("estimate_1", "connect at least one estimate or truth_rigid, found none")
+            raise InputError("estimates", "connect at least one estimate or truth_rigid, found none")
         if (truth is None) != (truth_rigid is None):
             raise InputError("truth" if truth is None else "truth_rigid",
                              "ground truth needs both truth_rigid and truth, found only one")

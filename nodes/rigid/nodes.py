@@ -13,9 +13,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
+from pydantic import field_validator
+
 import numpy as np
 
-from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out,
+from nodegraph import (FRAMEWISE, SEQUENCE, In, Index, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, RigidSequence)
 
 from ..geometry.rigid import apply_rigid, fit_rigid, invert_rigid, rigid_matrix
@@ -188,9 +190,16 @@ class ThreePoint(Node):
     kind = FRAMEWISE
 
     class Params(NodeParams):
-        vertices: list[int] = Param([], description="Three distinct vertex indices; empty = three "
-                                                    "well-spread vertices of the 'rigid' group "
-                                                    "(chosen on the reference).")
+        vertices: list[Index] = Param([], description="Three distinct vertex indices; empty = three "
+                                                      "well-spread vertices of the 'rigid' group "
+                                                      "(chosen on the reference).")
+
+        @field_validator("vertices")
+        @classmethod
+        def _three_distinct(cls, value: list[int]) -> list[int]:
+            if value and (len(value) != 3 or len(set(value)) != 3):
+                raise ValueError(f"expected [] or three distinct vertex indices, found {value}")
+            return value
 
     mesh = In(MeshSequence, doc=_MESH_DOC)
     reference = In(MeshSequence, per_frame=False, doc=_REF_DOC)

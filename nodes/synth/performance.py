@@ -24,7 +24,9 @@ exactly the slice a:b of the whole sequence.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Literal, NamedTuple
+
+from pydantic import field_validator
 
 import numpy as np
 
@@ -270,11 +272,19 @@ class Performance(Node):
                                                        "(0 = generic neutral)", ge=0)
         rotation_deg: float = Param(10.0, description="peak head rotation per axis (degrees)", ge=0)
         translation_cm: float = Param(2.0, description="peak head translation per axis (cm)", ge=0)
-        motion: str = Param("smooth", description=f"head motion, one of {list(MOTIONS)}")
+        motion: Literal["smooth", "nod", "turn", "walk", "none"] = Param(
+            "smooth", description=f"head motion, one of {list(MOTIONS)}")
         max_frequency_hz: float = Param(0.5, description="highest frequency of smooth head "
                                                          "motion (Hz)", gt=0)
         pivot_cm: list[float] = Param([], description="rotation pivot (x, y, z) in the skull "
                                                       "frame (cm); [] = near the top of the neck")
+
+        @field_validator("pivot_cm")
+        @classmethod
+        def _three_or_none(cls, value: list[float]) -> list[float]:
+            if len(value) not in (0, 3):
+                raise ValueError(f"expected [] or 3 values (x, y, z), found {len(value)}")
+            return value
         rest_fraction: float = Param(0.7, description="each expression weight is < 0.05 on at "
                                                       "least this fraction of frames", ge=0, le=1)
         expression_rate_hz: float = Param(0.4, description="single-expression onsets per second "
