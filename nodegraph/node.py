@@ -227,6 +227,9 @@ def format_validation_error(err: ValidationError) -> list[tuple[str, str]]:
                 continue
         if item.get("type") == "extra_forbidden":
             msg = "unknown parameter"
+        if item.get("type") == "value_error":  # a validator's own message says what was found
+            out.append((loc, msg.removeprefix("Value error, ")))
+            continue
         out.append((loc, f"{msg} (found {item.get('input')!r})" if "input" in item and
                     item.get("type") != "missing" else msg))
     return out

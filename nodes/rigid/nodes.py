@@ -198,7 +198,7 @@ class ThreePoint(Node):
         @classmethod
         def _three_distinct(cls, value: list[int]) -> list[int]:
             if value and (len(value) != 3 or len(set(value)) != 3):
-                raise ValueError(f"expected [] or three distinct vertex indices, found {value}")
+                raise ValueError(f"expected three distinct vertex indices (or [] to choose), found {value}")
             return value
 
     mesh = In(MeshSequence, doc=_MESH_DOC)

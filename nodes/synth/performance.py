@@ -283,7 +283,7 @@ class Performance(Node):
         @classmethod
         def _three_or_none(cls, value: list[float]) -> list[float]:
             if len(value) not in (0, 3):
-                raise ValueError(f"expected [] or 3 values (x, y, z), found {len(value)}")
+                raise ValueError(f"expected [] or 3 numbers (x, y, z, cm), found {value}")
             return value
         rest_fraction: float = Param(0.7, description="each expression weight is < 0.05 on at "
                                                       "least this fraction of frames", ge=0, le=1)
