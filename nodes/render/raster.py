@@ -1,0 +1,217 @@
+"""The discrete half of the rasterizer: which triangle covers which pixel (numba, no gradients).
+
+`rasterize_triangles` z-buffers triangles given in screen space and returns, per pixel, the
+index of the nearest covering triangle and its camera depth. Everything differentiable
+(barycentrics, attributes, shading, antialiasing) is computed afterwards in torch from these
+indices (`nodes.render.renderer`).
+
+Conventions: pixel origin top-left, x to the right, y down, pixel centres at integer
+coordinates (OpenCV, as `nodegraph.types.Camera`). A pixel is covered by a triangle when its
+centre lies inside or on the triangle (either winding: no back-face culling). Depth is the
+camera-frame z (cm), interpolated perspective-correctly (1 / z is affine in screen space).
+Triangles with a corner at z <= `near` are skipped whole (no clipping).
+
+This module imports numba at the top (compiled kernels cached on disk, `cache=True`): import it
+from node `run()` methods or torch modules only, never from a package `__init__`.
+"""
+
+from __future__ import annotations
+
+
+import numba
+import numpy as np
+
+__all__ = ["rasterize_triangles", "silhouette_pairs", "WALK_STEPS"]
+
+WALK_STEPS = 8
+"""Most triangles `silhouette_pairs` walks across from a pixel centre to a silhouette edge."""
+
+
+
+@numba.njit(cache=True, nogil=True)
+def _raster_kernel(pix, depth, faces, near, tri_out, z_out):  # pragma: no cover - compiled
+    batch, height, width = tri_out.shape
+    for b in range(batch):
+        for t in range(faces.shape[0]):
+            i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+            z0, z1, z2 = depth[b, i0], depth[b, i1], depth[b, i2]
+            if not (z0 > near and z1 > near and z2 > near):
+                continue
+            x0, y0 = pix[b, i0, 0], pix[b, i0, 1]
+            x1, y1 = pix[b, i1, 0], pix[b, i1, 1]
+            x2, y2 = pix[b, i2, 0], pix[b, i2, 1]
+            area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+            if not (area != 0.0 and np.isfinite(area)):
+                continue
+            xa = min(x0, min(x1, x2))
+            xb = max(x0, max(x1, x2))
+            ya = min(y0, min(y1, y2))
+            yb = max(y0, max(y1, y2))
+            if xb < 0.0 or yb < 0.0 or xa > width - 1 or ya > height - 1:
+                continue
+            xmin = max(int(np.ceil(xa)), 0)
+            xmax = min(int(np.floor(xb)), width - 1)
+            ymin = max(int(np.ceil(ya)), 0)
+            ymax = min(int(np.floor(yb)), height - 1)
+            inv = 1.0 / area
+            iz0, iz1, iz2 = 1.0 / z0, 1.0 / z1, 1.0 / z2
+            for py in range(ymin, ymax + 1):
+                for px in range(xmin, xmax + 1):
+                    w0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv
+                    w1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv
+                    w2 = 1.0 - w0 - w1
+                    if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                        continue
+                    z = 1.0 / (w0 * iz0 + w1 * iz1 + w2 * iz2)
+                    if z < z_out[b, py, px]:
+                        z_out[b, py, px] = z
+                        tri_out[b, py, px] = t
+
+
+def rasterize_triangles(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, height: int, width: int,
+                        near: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Z-buffer triangles in screen space: nearest covering triangle per pixel centre.
+
+    Args:
+        pix: (B, V, 2) float, pixel coordinates of the vertices (x right, y down, origin
+            top-left, pixel centres at integers).
+        depth: (B, V) float, camera-frame z of the vertices, cm (> `near` in front).
+        faces: (T, 3) int vertex indices.
+        height, width: image size, pixels.
+        near: triangles with any corner at z <= near (cm) are skipped.
+    Returns:
+        triangle: (B, H, W) int32, index into `faces` of the visible triangle, -1 where none.
+        zbuffer: (B, H, W) float64 camera z of the visible surface, cm, +inf where none.
+    Raises:
+        ValueError: shapes that do not match (named, with the shapes found).
+
+    Example:
+        >>> tri, z = rasterize_triangles(np.array([[[0., 0], [3, 0], [0, 3]]]),
+        ...                              np.full((1, 3), 5.0), np.array([[0, 1, 2]]), 3, 3)
+        >>> tri[0].tolist()
+        [[0, 0, 0], [0, 0, 0], [0, 0, -1]]
+    """
+    pix = np.ascontiguousarray(pix, dtype=np.float64)
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    if pix.ndim != 3 or pix.shape[2] != 2:
+        raise ValueError(f"pix: expected shape (B, V, 2), found {pix.shape}")
+    if depth.shape != pix.shape[:2]:
+        raise ValueError(f"depth: expected shape {pix.shape[:2]} (from pix), found {depth.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces: expected shape (T, 3), found {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= pix.shape[1]):
+        raise ValueError(f"faces: expected vertex indices in 0..{pix.shape[1] - 1}, found "
+                         f"{int(faces.min())}..{int(faces.max())}")
+    tri = np.full((pix.shape[0], height, width), -1, np.int32)
+    zbuf = np.full((pix.shape[0], height, width), np.inf, np.float64)
+    if faces.size:
+        _raster_kernel(pix, depth, faces, float(near), tri, zbuf)
+    return tri, zbuf
+
+
+@numba.njit(cache=True, nogil=True)
+def _bary(pix, b, i0, i1, i2, qx, qy, out):  # pragma: no cover - compiled
+    x0, y0 = pix[b, i0, 0], pix[b, i0, 1]
+    x1, y1 = pix[b, i1, 0], pix[b, i1, 1]
+    x2, y2 = pix[b, i2, 0], pix[b, i2, 1]
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    out[0] = ((x1 - qx) * (y2 - qy) - (x2 - qx) * (y1 - qy)) / area
+    out[1] = ((x2 - qx) * (y0 - qy) - (x0 - qx) * (y2 - qy)) / area
+    out[2] = 1.0 - out[0] - out[1]
+    return area
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, occ_out, far_out, tri_out, edge_out):  # pragma: no cover
+    batch, height, width = tri.shape
+    count = 0
+    lo = np.zeros(3)
+    lf = np.zeros(3)
+    for b in range(batch):
+        for axis in range(2):  # 0: horizontal pairs, 1: vertical pairs
+            for y in range(height - axis):
+                for x in range(width - 1 + axis):
+                    y2, x2 = y + axis, x + 1 - axis
+                    ta, tb = tri[b, y, x], tri[b, y2, x2]
+                    if ta == tb:
+                        continue
+                    if zbuf[b, y, x] < zbuf[b, y2, x2]:
+                        oy, ox, fy, fx, t = y, x, y2, x2, ta
+                    else:
+                        oy, ox, fy, fx, t = y2, x2, y, x, tb
+                    f0, f1, f2 = faces[t, 0], faces[t, 1], faces[t, 2]
+                    own = _bary(pix, b, f0, f1, f2, ox, oy, lo) > 0.0
+                    cur = t
+                    for _ in range(steps):
+                        c0, c1, c2 = faces[cur, 0], faces[cur, 1], faces[cur, 2]
+                        _bary(pix, b, c0, c1, c2, ox, oy, lo)
+                        _bary(pix, b, c0, c1, c2, fx, fy, lf)
+                        best = np.inf
+                        edge = -1
+                        for i in range(3):
+                            if lf[i] < lo[i]:
+                                s = lo[i] / (lo[i] - lf[i])
+                                if s < best:
+                                    best = s
+                                    edge = i
+                        if edge < 0 or not best < 1.0:
+                            break  # the far centre lies in this triangle: no silhouette
+                        nb = adjacency[cur, edge]
+                        boundary = nb < 0
+                        if not boundary:
+                            n0, n1, n2 = faces[nb, 0], faces[nb, 1], faces[nb, 2]
+                            ax, ay = pix[b, n0, 0], pix[b, n0, 1]
+                            area = (pix[b, n1, 0] - ax) * (pix[b, n2, 1] - ay) - \
+                                (pix[b, n2, 0] - ax) * (pix[b, n1, 1] - ay)
+                            boundary = (area > 0.0) != own
+                        if boundary:
+                            k1 = faces[cur, (edge + 1) % 3]
+                            k2 = faces[cur, (edge + 2) % 3]
+                            dx = abs(pix[b, k2, 0] - pix[b, k1, 0])
+                            dy = abs(pix[b, k2, 1] - pix[b, k1, 1])
+                            if (axis == 0 and dy > dx) or (axis == 1 and dx >= dy):
+                                if best >= 0.0:
+                                    occ_out[count] = (b * height + oy) * width + ox
+                                    far_out[count] = (b * height + fy) * width + fx
+                                    tri_out[count] = cur
+                                    edge_out[count] = edge
+                                    count += 1
+                            break
+                        cur = nb
+    return count
+
+
+def silhouette_pairs(triangle: np.ndarray, zbuffer: np.ndarray, pix: np.ndarray, faces: np.ndarray,
+                     adjacency: np.ndarray, steps: int = WALK_STEPS
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Find the silhouette edges between adjacent pixel centres (the discrete half of the
+    analytic antialiasing of `nodes.render.renderer`).
+
+    For each horizontally or vertically adjacent pixel pair showing different triangles, the
+    pixel with the nearer surface is the occluder. From its triangle, the segment towards the
+    other pixel's centre is followed across edges whose neighbour faces the same way in
+    screen space (at most `steps` triangles) to the first silhouette edge (no neighbour, or a
+    neighbour facing the other way). The pair is kept when that edge is crossed before the
+    far centre and is more perpendicular than parallel to the pair (steeper than 45 degrees
+    for horizontal pairs, flatter for vertical ones, so every edge is counted once).
+
+    Args:
+        triangle: (B, H, W) int visible triangle per pixel, -1 none (`rasterize_triangles`).
+        zbuffer: (B, H, W) float camera z, +inf none.
+        pix: (B, V, 2) float projected vertices, pixels.
+        faces: (T, 3) int; adjacency: (T, 3) int (`renderer.triangle_adjacency`).
+        steps: most triangles walked.
+    Returns:
+        occluder, far: (M,) int64 flat pixel indices into (B, H, W);
+        triangle: (M,) int64 the triangle whose edge is the silhouette;
+        edge: (M,) int64 the corner (0..2) opposite that edge.
+    """
+    tri = np.ascontiguousarray(triangle, np.int64)
+    size = 2 * tri.size + 1
+    occ, far = np.empty(size, np.int64), np.empty(size, np.int64)
+    t_out, e_out = np.empty(size, np.int64), np.empty(size, np.int64)
+    n = _pairs_kernel(tri, np.ascontiguousarray(zbuffer, np.float64), np.ascontiguousarray(pix, np.float64),
+                      np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(adjacency, np.int64),
+                      int(steps), occ, far, t_out, e_out)
+    return occ[:n].copy(), far[:n].copy(), t_out[:n].copy(), e_out[:n].copy()
