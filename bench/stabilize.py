@@ -1,20 +1,28 @@
-"""Mode-pursuit stabilization: wall time, energy evaluations and accuracy at the paper's sizes.
+"""Mode-pursuit stabilization against the baselines, situation by situation, with wall times.
 
-Run: python bench/stabilize.py [--repeat 3] [--seed 0] [--compile] [--large]
+Run: python bench/stabilize.py [--repeat 1] [--seed 0] [--frames 651] [--vertices 1185]
+                               [--situations default,noise,...] [--sizes] [--compile] [--large]
 
-For each size of the paper's Table I (63 x 2466, 96 x 2466, 651 x 1185 frames x vertices) a
-synthetic performance of the ICT face region is generated (`nodes.synth.performance`, 10 deg /
-2 cm smooth head motion, 0.01 cm noise). Rows:
-- the baselines `rigid.ThreePoint`, `rigid.Procrustes` (group "rigid") and robust `rigid.ICP`
-  (all vertices, at most 1000 well-spread ones), skull frame = frame 0;
-- `stabilize.ModePursuit` initialised from Procrustes, and from identity, on CPU (and CUDA
-  when available): best wall time of `--repeat` runs (s), energy + gradient evaluations,
-  L-BFGS iterations.
-Accuracy (`nodes.report.metrics.stabilization_errors`): per-vertex error of the motion
-(noise-free mesh) after removing one global rigid offset: median / mean / p95 (cm).
-`--compile` adds a row with `compile=True` (first run includes the compile, then the best
-warm run). `--large` adds one long, dense case (2000 frames x 26,719 vertices, whole head,
-energy on 2000 sampled vertices) to show time and peak memory at scale.
+Situations (synthetic performances of the ICT face region, `nodes.synth.performance`, by
+default 651 frames x 1185 vertices, 10 deg / 2 cm smooth head motion, 0.01 cm noise):
+  default      the defaults above
+  noise        0.1 cm tracking noise (10x)
+  large        head motion up to 40 deg and 10 cm per axis
+  short        a 30-frame shot
+  expressions  strong held expressions in about 70 % of the frames
+  start        the shot starts in a strong expression
+  outliers     5 % outlier vertices per frame (0.5-1.5 cm)
+Methods: `rigid.ThreePoint`, `rigid.Procrustes` on the "rigid" group and on all vertices,
+robust `rigid.ICP` (all vertices, at most 1000 well-spread ones), `stabilize.ModePursuit`
+(adaptive schedule, identity initialization; the node, so stabilizing every vertex is
+included). Errors (`nodes.report.metrics.stabilization_errors`): per-vertex error of the
+motion (noise-free mesh) after removing one global rigid offset, median / p95 (cm).
+
+`--sizes` adds the paper's Table I sizes (63 x 2466, 96 x 2466, 651 x 1185) for mode pursuit
+alone (the function, best of `--repeat`), from identity and from Procrustes, adaptive and
+the paper's fixed schedule. `--compile` adds compiled rows there. `--large` adds one long,
+dense case (2000 frames x 26,719 vertices, whole head) with peak memory.
+CUDA rows appear when a GPU is present.
 """
 
 from __future__ import annotations
@@ -27,7 +35,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from nodegraph import RigidSequence, run_node
+from nodegraph import run_node
 from nodes.io.face_model import load_face_model
 from nodes.report.metrics import stabilization_errors
 from nodes.rigid.nodes import ICP, Procrustes, ReferenceFrame, ThreePoint
@@ -35,6 +43,15 @@ from nodes.stabilize.mode_pursuit import mode_pursuit
 from nodes.stabilize.node import ModePursuit
 from nodes.synth.performance import generate_performance
 
+SITUATIONS: dict[str, dict] = {
+    "default": {},
+    "noise": {"noise_cm": 0.1},
+    "large": {"rotation_deg": 40.0, "translation_cm": 10.0},
+    "short": {"num_frames": 30},
+    "expressions": {"held_fraction": 0.7},
+    "start": {"start_expression": 1.0},
+    "outliers": {"outlier_fraction": 0.05, "outlier_cm": 0.5},
+}
 SIZES = [(63, 2466), (96, 2466), (651, 1185)]
 
 
@@ -48,68 +65,98 @@ def timed(fn: Callable[[], object], repeat: int) -> tuple[float, object]:
     return best, out
 
 
-def row(size: str, method: str, device: str, seconds: float, evals: object, iters: object,
-        estimate: np.ndarray, truth_rigid: np.ndarray, truth: np.ndarray) -> None:
-    s = stabilization_errors(estimate, truth_rigid, truth).summary()
-    print(f"{size:>11}  {method:<26} {device:<5} {seconds:8.3f} {str(evals):>6} {str(iters):>6}  "
-          f"{s['median_cm']:.4f}  {s['mean_cm']:.4f}  {s['p95_cm']:.4f}", flush=True)
+def errors(estimate: np.ndarray, perf) -> tuple[float, float]:
+    s = stabilization_errors(estimate, perf.rigid.matrices, perf.stabilized.vertices).summary()
+    return s["median_cm"], s["p95_cm"]
 
 
-def bench_size(frames: int, vertices: int, args: argparse.Namespace, devices: list[str],
-               region: str = "face", max_vertices: int = 2000) -> None:
-    model = load_face_model(region=region, max_vertices=vertices if region else 0)
-    perf = generate_performance(model, num_frames=frames, seed=args.seed, rotation_deg=10.0,
-                                translation_cm=2.0, noise_cm=0.01)
-    mesh, truth_rigid = perf.capture, perf.rigid.matrices
-    truth = perf.stabilized.vertices
-    size = f"{frames}x{mesh.num_vertices}"
+def situation_rows(name: str, perf, repeat: int, device: str) -> dict[str, tuple[float, float, float]]:
+    """method -> (median cm, p95 cm, seconds) for one capture."""
+    mesh = perf.capture
     reference = run_node(ReferenceFrame, {"frame": 0}, mesh=mesh)["reference"]
-    baselines = {"rigid.ThreePoint": (ThreePoint, {}),
-                 "rigid.Procrustes": (Procrustes, {"group": "rigid"}),
-                 "rigid.ICP": (ICP, {"group": ""})}
-    init = None
-    for name, (node, params) in baselines.items():
-        seconds, out = timed(lambda: run_node(node, params, mesh=mesh, reference=reference), args.repeat)
-        row(size, name, "cpu", seconds, "-", "-", out["rigid"].matrices, truth_rigid, truth)
-        if name == "rigid.Procrustes":
-            init = out["rigid"].matrices
-    for device in devices:
-        for label, start in (("ModePursuit(Procrustes)", init), ("ModePursuit(identity)", None)):
-            seconds, res = timed(lambda: mode_pursuit(mesh.vertices, init=start, device=device,
-                                                      max_vertices=max_vertices), args.repeat)
-            row(size, label, device, seconds, res.evaluations, res.iterations, res.matrices, truth_rigid, truth)
-        if args.compile:
-            first = time.perf_counter()
-            mode_pursuit(mesh.vertices, init=init, device=device, compile=True)
-            first = time.perf_counter() - first
-            seconds, res = timed(lambda: mode_pursuit(mesh.vertices, init=init, device=device, compile=True),
-                                 args.repeat)
-            row(size, f"ModePursuit compiled(1st {first:.1f}s)", device, seconds, res.evaluations,
-                res.iterations, res.matrices, truth_rigid, truth)
-    # Node path (includes stabilizing every vertex and the port checks).
-    seconds, out = timed(lambda: run_node(ModePursuit, {"device": devices[0]}, mesh=mesh,
-                                          init=RigidSequence(init)), 1)
-    row(size, "stabilize.ModePursuit node", devices[0], seconds, "-", "-", out["rigid"].matrices,
-        truth_rigid, truth)
+    methods = {
+        "three_point": (ThreePoint, {}, {"reference": reference}),
+        "procrustes_rigid": (Procrustes, {"group": "rigid"}, {"reference": reference}),
+        "procrustes_all": (Procrustes, {"group": ""}, {"reference": reference}),
+        "icp": (ICP, {"group": ""}, {"reference": reference}),
+        "mode_pursuit": (ModePursuit, {"device": device}, {}),
+    }
+    out = {}
+    for label, (node, params, extra) in methods.items():
+        seconds, result = timed(lambda: run_node(node, params, mesh=mesh, **extra), repeat)
+        out[label] = errors(result["rigid"].matrices, perf) + (seconds,)
+    return out
+
+
+def print_table(table: dict[str, dict[str, tuple[float, float, float]]]) -> None:
+    methods = list(next(iter(table.values())))
+    print("\nmedian / p95 vertex error (cm), wall time (s)")
+    print(f"{'situation':<12} " + " ".join(f"{m:>24}" for m in methods))
+    for name, rows in table.items():
+        best = min(rows[m][0] for m in methods if m != "mode_pursuit")
+        mark = "ok" if rows["mode_pursuit"][0] <= best else "LOSES"
+        print(f"{name:<12} " + " ".join(f"{rows[m][0]:.4f}/{rows[m][1]:.4f} {rows[m][2]:6.2f}s"
+                                       for m in methods) + f"  {mark}")
+
+
+def bench_sizes(args: argparse.Namespace, devices: list[str]) -> None:
+    print(f"\n{'size':>11}  {'method':<34} {'dev':<5} {'wall_s':>8} {'evals':>6}  median  p95 (cm)")
+    for frames, vertices in SIZES:
+        perf = generate_performance(load_face_model(region="face", max_vertices=vertices),
+                                    num_frames=frames, seed=args.seed, noise_cm=0.01)
+        mesh = perf.capture
+        reference = run_node(ReferenceFrame, {"frame": 0}, mesh=mesh)["reference"]
+        init = run_node(Procrustes, {"group": ""}, mesh=mesh, reference=reference)["rigid"].matrices
+        for device in devices:
+            for schedule in ("adaptive", "fixed"):
+                for label, start in (("identity", None), ("Procrustes", init)):
+                    seconds, res = timed(lambda: mode_pursuit(mesh.vertices, init=start, device=device,
+                                                              schedule=schedule), args.repeat)
+                    med, p95 = errors(res.matrices, perf)
+                    print(f"{frames:>4}x{mesh.num_vertices:<6}  {f'{schedule} from {label}':<34} {device:<5} "
+                          f"{seconds:8.3f} {res.evaluations:>6}  {med:.4f}  {p95:.4f}", flush=True)
+            if args.compile:
+                seconds, res = timed(lambda: mode_pursuit(mesh.vertices, device=device, compile=True),
+                                     args.repeat + 1)
+                med, p95 = errors(res.matrices, perf)
+                print(f"{frames:>4}x{mesh.num_vertices:<6}  {'adaptive compiled (warm)':<34} {device:<5} "
+                      f"{seconds:8.3f} {res.evaluations:>6}  {med:.4f}  {p95:.4f}", flush=True)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--frames", type=int, default=651)
+    parser.add_argument("--vertices", type=int, default=1185)
+    parser.add_argument("--situations", default=",".join(SITUATIONS))
+    parser.add_argument("--sizes", action="store_true")
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--large", action="store_true")
     args = parser.parse_args()
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, devices {devices}")
-    print(f"{'size':>11}  {'method':<26} {'dev':<5} {'wall_s':>8} {'evals':>6} {'iters':>6}  "
-          f"median  mean    p95 (cm)")
-    for frames, vertices in SIZES:
-        bench_size(frames, vertices, args, devices)
+    model = load_face_model(region="face", max_vertices=args.vertices)
+    table = {}
+    for name in args.situations.split(","):
+        if not name:
+            continue
+        kw = {"num_frames": args.frames, "seed": args.seed, "noise_cm": 0.01} | SITUATIONS[name]
+        perf = generate_performance(model, **kw)
+        table[name] = situation_rows(name, perf, args.repeat, devices[-1])
+        rows = table[name]
+        print(f"{name:<12} " + "  ".join(f"{m} {v[0]:.4f}/{v[1]:.4f} {v[2]:.2f}s" for m, v in rows.items()),
+              flush=True)
+    if table:
+        print_table(table)
+    if args.sizes:
+        bench_sizes(args, devices)
     if args.large:
-        args.repeat, args.compile = 1, False
-        bench_size(2000, 0, args, devices, region="")
-        print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+        perf = generate_performance(load_face_model(), num_frames=2000, seed=args.seed, noise_cm=0.01)
+        seconds, out = timed(lambda: run_node(ModePursuit, {"device": devices[-1]}, mesh=perf.capture), 1)
+        med, p95 = errors(out["rigid"].matrices, perf)
+        print(f"\n2000x26719 whole head, stabilize.ModePursuit node: {seconds:.2f} s, median {med:.4f} "
+              f"p95 {p95:.4f} cm, peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
 
 if __name__ == "__main__":

@@ -70,9 +70,10 @@ from ..geometry.rigid import invert_rigid_torch
 from ..geometry.sampling import farthest_point_sampling_torch
 from .energy import EnergyData, block_energy, default_block_frames, fused_energy
 from .lbfgs import lbfgs
-from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, StageLog, make_schedule
+from .robust import apply_transforms, noise_level, residual_scale, rest_mode, robust_align
+from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, Stage, StageLog, make_schedule
 
-__all__ = ["ModePursuitResult", "mode_pursuit"]
+__all__ = ["ModePursuitResult", "AdaptivePlan", "adaptive_plan", "mode_pursuit"]
 
 ProgressFn = Callable[[float, str], None]
 
@@ -91,6 +92,7 @@ class ModePursuitResult(NamedTuple):
         iterations: number of L-BFGS iterations (over all stages).
         stages: one `StageLog` per stage of the schedule.
         seconds: wall time of the optimization.
+        plan: how the adaptive schedule was chosen (None for `schedule="fixed"`).
     """
 
     matrices: np.ndarray
@@ -100,6 +102,7 @@ class ModePursuitResult(NamedTuple):
     iterations: int
     stages: list[StageLog]
     seconds: float
+    plan: "AdaptivePlan | None" = None
 
 
 def _resolve_device(device: str | torch.device | None) -> torch.device:
@@ -135,41 +138,213 @@ def _update_rest(x: Tensor, rot: Tensor, trans: Tensor, rest: Tensor, width: flo
 
 
 # --------------------------------------------------------------------------------------
+# Adaptive schedule
+# --------------------------------------------------------------------------------------
+class AdaptivePlan(NamedTuple):
+    """How the adaptive schedule was chosen (cm, frames), reported in progress and results.
+
+    Attributes:
+        noise_cm: estimated tracking-noise std (cm), from second differences over frames of
+            the robustly aligned vertices (`robust.noise_level`).
+        init_width_cm: width of the last robust per-frame alignment round (cm).
+        position_widths: spline-stage position widths (cm), ending at `noise_multiple *
+            noise_cm` (not below `min_width`).
+        velocity_widths: spline-stage velocity widths (cm / frame), a quarter of the position
+            widths (the paper's ratio).
+        spacing: control-point spacing of the spline (frames), `clip((F - 1) / 4, 1, 4)`.
+        velocity_weight: lambda used (the given one; 0 when the shot is too short for the
+            7-tap stencil, F < 7).
+        spline: whether spline stages ran (False for F < 7: per-frame alignment only).
+    """
+
+    noise_cm: float
+    init_width_cm: float
+    position_widths: tuple[float, ...]
+    velocity_widths: tuple[float, ...]
+    spacing: float
+    velocity_weight: float
+    spline: bool
+
+
+def adaptive_plan(noise_cm: float, init_width_cm: float, num_frames: int, *,
+                  noise_multiple: float = 5.0, min_width: float = 0.02,
+                  velocity_weight: float = 1.0) -> AdaptivePlan:
+    """Choose the spline stages from the data: widths from the noise, spacing from the length.
+
+    The final width is `w_end = max(noise_multiple * noise_cm, min_width)`: below a few noise
+    std the bounded penalty saturates on noise and the energy goes flat. The stages are
+    `[2 w_end, w_end]` (the robust per-frame alignment before them already brought every frame
+    within about `init_width_cm` of the mode, so the paper's coarse widths are not needed).
+    The spacing is `clip((F - 1) / 4, 1, 4)` frames, so a short shot keeps at least about 7
+    control points; shots under 7 frames get no spline stage (the velocity stencil needs 7).
+
+    Args:
+        noise_cm: estimated noise std (cm).
+        init_width_cm: width reached by the robust per-frame alignment (cm).
+        num_frames: F.
+        noise_multiple: w_end in noise std.
+        min_width: smallest final width (cm).
+        velocity_weight: lambda.
+    Returns:
+        AdaptivePlan.
+
+    Example:
+        >>> adaptive_plan(0.01, 0.05, 651).position_widths
+        (0.1, 0.05)
+    """
+    w_end = max(noise_multiple * noise_cm, min_width)
+    widths = (2.0 * w_end, w_end)
+    spline = num_frames >= 7
+    return AdaptivePlan(float(noise_cm), float(init_width_cm), widths, tuple(w / 4.0 for w in widths),
+                        float(min(4.0, max(1.0, (num_frames - 1) / 4.0))),
+                        float(velocity_weight) if spline else 0.0, spline)
+
+
+# --------------------------------------------------------------------------------------
 # Optimizer
 # --------------------------------------------------------------------------------------
+def _spline_stages(x: Tensor, base: Tensor, basis: SplineBasis, rest_x: Tensor, schedule: list[Stage],
+                   *, scale: float, spacing: float, refinements: int, velocity_weight: float,
+                   iterations: int, history_size: int, update_rest: bool, block: int,
+                   kernel: Callable[..., tuple[Tensor, Tensor, Tensor]],
+                   progress: Callable[[int, StageLog], None] | None) -> tuple[Tensor, Tensor, list[StageLog]]:
+    """Run the L-BFGS stages of `schedule` on the spline; return (control, rest, stage logs)."""
+    num_frames = x.shape[0]
+    stages_out: list[StageLog] = []
+    level = 0
+
+    def corrected(base: Tensor, delta: Tensor, from_level: int) -> Tensor:
+        """Add a correction of level `from_level`, refined to the finest level, to `base`."""
+        h = float(spacing) / 2 ** from_level
+        for _ in range(from_level, refinements):
+            h /= 2.0
+            delta = refine_midpoint(delta)[:num_control_points(num_frames, h)]
+        return base + delta
+
+    for index, stage in enumerate(schedule):
+        stage_started = time.perf_counter()
+        level += int(stage.refine)
+        current_spacing = float(spacing) / 2 ** level
+        if update_rest and index > 0:
+            with torch.no_grad():
+                rot, trans = _spline_transforms(base, basis)
+            rest_x = _update_rest(x, rot.to(torch.float32), trans.to(torch.float32), rest_x,
+                                  stage.width_pos / scale, 3, block)
+        data = EnergyData(x, rest_x, stage.width_pos / scale, stage.width_vel / scale,
+                          float(velocity_weight), block, kernel)
+        shape = (num_control_points(num_frames, current_spacing), 8)
+        energies: list[float] = []
+
+        def objective(flat: Tensor) -> tuple[float, Tensor]:
+            delta = flat.view(shape).requires_grad_(True)
+            rot, trans = _spline_transforms(corrected(base, delta, level), basis)
+            energy = fused_energy(rot, trans, data)
+            (grad,) = torch.autograd.grad(energy, delta)
+            energies.append(float(energy.detach()))
+            return energies[-1], grad.reshape(-1)
+
+        zero = torch.zeros(shape[0] * shape[1], dtype=torch.float64, device=x.device)
+        flat, _, stage_iters = lbfgs(objective, zero, iterations=iterations,
+                                     history_size=history_size) if iterations > 0 else (zero, 0.0, 0)
+        with torch.no_grad():
+            base = dualquat_normalize(corrected(base, flat.view(shape), level))
+        stages_out.append(StageLog(
+            width_pos=stage.width_pos, width_vel=stage.width_vel,
+            spacing=current_spacing, control_points=shape[0],
+            iterations=stage_iters,
+            evaluations=len(energies),
+            energy_start=energies[0] if energies else float("nan"),
+            energy_end=energies[-1] if energies else float("nan"),
+            seconds=time.perf_counter() - stage_started,
+        ))
+        if progress is not None:
+            progress(index, stages_out[-1])
+    return base, rest_x, stages_out
+
+
+def _robust_initialization(x: Tensor, rot: Tensor, trans: Tensor, rest_x: Tensor | None,
+                           vertex_weights: Tensor | None, *, rounds: int, min_width: float
+                           ) -> tuple[Tensor, Tensor, Tensor, float]:
+    """Robust per-frame alignment to a rest estimate, alternating with the rest's mode.
+
+    Round k: width `w_k = max(3 median_{f,v} |S_fv - R_v|, min_width)`, two IRLS steps of
+    `robust.robust_align` at `w_k`, then (unless the rest is given) the rest moves to the
+    per-vertex mode at radius `w_k / 2` (`robust.rest_mode`; a full candidate search in
+    rounds 1 and 3, mean shift from the previous rest otherwise). Round 0 starts from the
+    median of the initially stabilized vertices, so the first widths are wide (nearly least
+    squares) when the initialization is poor (identity under large head motion); the widths
+    then shrink to about 5 noise std. Units are those of `x`.
+
+    Returns:
+        rot (F, 3, 3) float64, trans (F, 3) float64, rest (3, E), last width.
+    """
+    fixed_rest = rest_x is not None
+    if rest_x is None:
+        rest_x = apply_transforms(x, rot, trans).median(dim=0).values.contiguous()
+    width = float("inf")
+    for r in range(rounds):
+        dist = apply_transforms(x, rot, trans).sub_(rest_x).square_().sum(1).sqrt_()
+        width = max(3.0 * residual_scale(dist), min_width)
+        del dist
+        aligned = robust_align(x, rest_x, rot, trans, width, iterations=2, vertex_weights=vertex_weights)
+        rot, trans = aligned.rot, aligned.trans
+        if not fixed_rest:
+            stab = apply_transforms(x, rot, trans)
+            rest_x = rest_mode(stab, 0.5 * width, start=None if r in (1, 3) else rest_x).contiguous()
+            del stab
+    return rot, trans, rest_x, width
+
+
 def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | None = None,
                  rest: np.ndarray | Tensor | None = None,
                  vertex_ids: np.ndarray | Sequence[int] | None = None,
+                 vertex_weights: np.ndarray | Sequence[float] | None = None,
+                 schedule: str = "adaptive",
                  position_widths: Sequence[float] = DEFAULT_POSITION_WIDTHS,
                  velocity_widths: Sequence[float] = DEFAULT_VELOCITY_WIDTHS,
                  velocity_weight: float = 1.0, spacing: float = 8.0, refinements: int = 2,
                  iterations: int = 24, max_vertices: int = 2000, update_rest: bool = True,
+                 noise_multiple: float = 5.0, min_width: float = 0.02, init_rounds: int = 6,
+                 polish_iterations: int = 3,
                  history_size: int = 10, device: str | torch.device | None = "auto",
                  compile: bool = False, progress: ProgressFn | None = None) -> ModePursuitResult:
     """Stabilize a tracked mesh sequence by mode pursuit (see the module docstring).
 
     Minimises eq. 4 over the control dual quaternions of a cubic SDLB spline of the
-    world-to-skull motion, by L-BFGS restarted at each stage of `make_schedule(...)`.
+    world-to-skull motion, by L-BFGS restarted at each stage of the schedule.
 
     Args:
-        vertices: (F, V, 3) tracked vertices, world frame, cm; F >= 7.
-        init: (F, 4, 4) initial skull-to-world transforms, or None for identity; the
-            initial spline is its least-squares fit (on hemisphere-aligned dual quaternions).
-        rest: (V, 3) rest mesh in the skull frame (cm), or None for the per-vertex median
-            of the vertices moved by `init` into the skull frame.
+        vertices: (F, V, 3) tracked vertices, world frame, cm; F >= 7 for `schedule="fixed"`,
+            F >= 1 for "adaptive" (under 7 frames: robust per-frame alignment only).
+        init: (F, 4, 4) initial skull-to-world transforms, or None for identity. "fixed": the
+            initial spline is its least-squares fit (on hemisphere-aligned dual quaternions);
+            "adaptive": only the start of the robust per-frame alignment (the result does
+            not depend on it beyond rounding, for any reasonable start).
+        rest: (V, 3) rest mesh in the skull frame (cm), or None to estimate it ("fixed": the
+            per-vertex median of the vertices moved by `init`; "adaptive": the per-vertex
+            mode, see `robust.rest_mode`).
         vertex_ids: indices of the vertices the energy uses (e.g. a face region), or None
             for all.
-        position_widths: continuation widths for positions (cm), decreasing.
-        velocity_widths: continuation widths for velocities (cm / frame), same count.
+        vertex_weights: (V,) prior weight of each vertex >= 0 ("adaptive" only: robust
+            alignment and polish), e.g. 2 on a rigid region and 1 elsewhere; None = 1.
+        schedule: "adaptive" (default; see `adaptive_plan` and the module docstring) or
+            "fixed" (the paper's method: the given widths, spacing, refinements).
+        position_widths: "fixed": continuation widths for positions (cm), decreasing.
+        velocity_widths: "fixed": continuation widths for velocities (cm / frame), same count.
         velocity_weight: lambda, weight of the velocity sum.
-        spacing: control-point spacing of the initial spline (frames).
-        refinements: midpoint refinements during the schedule (final spacing is
+        spacing: "fixed": control-point spacing of the initial spline (frames).
+        refinements: "fixed": midpoint refinements during the schedule (final spacing is
             `spacing / 2**refinements`).
         iterations: L-BFGS iterations per stage (fixed; no convergence test).
         max_vertices: at most this many energy vertices, chosen by farthest-point sampling
             (deterministic) on the first frame.
         update_rest: re-estimate the rest (3 mean-shift steps at the stage's position width)
             before every stage after the first; ignored when `rest` is given.
+        noise_multiple: "adaptive": final width in estimated noise std.
+        min_width: "adaptive": smallest width of any stage (cm).
+        init_rounds: "adaptive": rounds of robust per-frame alignment and rest estimation.
+        polish_iterations: "adaptive": IRLS steps of the final per-frame robust alignment to
+            the rest at the final width (0 = none).
         history_size: L-BFGS memory.
         device: "auto" (CUDA when available), "cpu", "cuda" or a torch device.
         compile: run the block kernel through `torch.compile` (pays a one-off compile).
@@ -177,20 +352,24 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     Returns:
         ModePursuitResult.
     Raises:
-        ValueError: bad shapes, fewer than 7 frames, out-of-range `vertex_ids`, bad settings.
+        ValueError: bad shapes, too few frames, out-of-range `vertex_ids`, bad settings.
     """
     started = time.perf_counter()
     verts = torch.as_tensor(np.asarray(vertices) if not isinstance(vertices, Tensor) else vertices)
     if verts.ndim != 3 or verts.shape[2] != 3:
         raise ValueError(f"vertices: expected shape (F, V, 3), found {tuple(verts.shape)}")
     num_frames, num_vertices = int(verts.shape[0]), int(verts.shape[1])
-    if num_frames < 7:
-        raise ValueError(f"vertices: expected at least 7 frames (the velocity stencil spans 7), "
-                         f"found {num_frames}")
+    if schedule not in ("adaptive", "fixed"):
+        raise ValueError(f"schedule: expected 'adaptive' or 'fixed', found {schedule!r}")
+    adaptive = schedule == "adaptive"
+    if num_frames < (1 if adaptive else 7):
+        raise ValueError(f"vertices: expected at least {1 if adaptive else 7} frames"
+                         f"{'' if adaptive else ' (the velocity stencil spans 7)'}, found {num_frames}")
     if num_vertices < 3:
         raise ValueError(f"vertices: expected at least 3 vertices, found {num_vertices}")
     for name, value in (("velocity_weight", velocity_weight), ("refinements", refinements),
-                        ("iterations", iterations)):
+                        ("iterations", iterations), ("init_rounds", init_rounds),
+                        ("polish_iterations", polish_iterations)):
         if value < 0:
             raise ValueError(f"{name}: expected >= 0, found {value}")
     if not spacing >= 1.0:
@@ -201,9 +380,11 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     if any(not w > 0 for w in list(position_widths) + list(velocity_widths)):
         raise ValueError(f"position_widths/velocity_widths: expected positive widths, found "
                          f"{list(position_widths)} / {list(velocity_widths)}")
+    if not (noise_multiple > 0 and min_width > 0):
+        raise ValueError(f"noise_multiple, min_width: expected > 0, found {noise_multiple}, {min_width}")
     if max_vertices < 3:
         raise ValueError(f"max_vertices: expected >= 3, found {max_vertices}")
-    schedule = make_schedule(position_widths, velocity_widths, refinements)
+    fixed_schedule = make_schedule(position_widths, velocity_widths, refinements)
     dev = _resolve_device(device)
 
     # -- energy vertices -----------------------------------------------------------------
@@ -217,6 +398,12 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
             raise ValueError(f"vertex_ids: expected indices in 0..{num_vertices - 1}, found "
                              f"{int(ids.min())}..{int(ids.max())}")
         ids = torch.unique(ids)
+    prior = None
+    if vertex_weights is not None:
+        prior = torch.as_tensor(np.asarray(vertex_weights, dtype=np.float32)).reshape(-1)
+        if prior.numel() != num_vertices or not bool(torch.isfinite(prior).all()) or bool((prior < 0).any()):
+            raise ValueError(f"vertex_weights: expected {num_vertices} finite weights >= 0, found "
+                             f"{prior.numel()} (min {float(prior.min()) if prior.numel() else 'n/a'})")
 
     # -- initial world-to-skull transforms (float64, cm) ---------------------------------
     if init is None:
@@ -241,93 +428,94 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     del x_sel
     block = default_block_frames(num_frames, x.shape[2])
 
-    # -- initial spline, at the finest spacing -----------------------------------------------
-    final_spacing = float(spacing) / 2 ** refinements
-    basis = frame_basis(num_frames, final_spacing, device=dev)
-    if init is None:
-        base = dualquat_identity(basis.num_control, dtype=torch.float64, device=dev)
-    else:
-        dq = dualquat_from_rotation_translation(rotmat_to_quat(rot0), trans0)
-        dq = dualquat_align_hemisphere(dq, dim=0).to(dev)
-        base = fit_control_points(dq, basis)
-
-    # -- rest shape -------------------------------------------------------------------------
+    rest_x: Tensor | None = None
     if rest is not None:
         rest_t = torch.as_tensor(np.asarray(rest) if not isinstance(rest, Tensor) else rest).to(torch.float64)
         if rest_t.shape != (num_vertices, 3):
             raise ValueError(f"rest: expected shape ({num_vertices}, 3), found {tuple(rest_t.shape)}")
         rest_x = ((rest_t[ids] - centre) / scale).to(dev, torch.float32).T.contiguous()  # (3, E)
-    else:
-        with torch.no_grad():
-            rot, trans = _spline_transforms(base, basis)
-            stab0 = torch.baddbmm(trans.to(x.dtype)[:, :, None], rot.to(x.dtype), x)
-            rest_x = stab0.median(dim=0).values.contiguous()                               # (3, E)
-            del stab0
 
     kernel: Callable[..., tuple[Tensor, Tensor, Tensor]] = block_energy
     if compile:
         kernel = torch.compile(block_energy, dynamic=True)
-    counters = {"evaluations": 0}
-    total_iterations = 0
+
+    plan: AdaptivePlan | None = None
+    if adaptive:
+        weights_e = None if prior is None else prior[ids].to(dev)
+        rot_a, trans_a, rest_x, init_width = _robust_initialization(
+            x, rot0.to(dev), trans0.to(dev), rest_x, weights_e, rounds=max(init_rounds, 1),
+            min_width=min_width / scale)
+        noise = noise_level(apply_transforms(x, rot_a, trans_a)) * scale
+        plan = adaptive_plan(noise, init_width * scale, num_frames, noise_multiple=noise_multiple,
+                             min_width=min_width, velocity_weight=velocity_weight)
+        stages = make_schedule(plan.position_widths, plan.velocity_widths, 0) if plan.spline else []
+        total_steps = len(stages) + 2
+        if progress is not None:
+            progress(1.0 / total_steps,
+                     f"robust per-frame alignment: width {plan.init_width_cm:.3g} cm; noise "
+                     f"{plan.noise_cm:.3g} cm -> widths {', '.join(f'{w:.3g}' for w in plan.position_widths)} "
+                     f"cm (final = max({noise_multiple:g} x noise, {min_width:g})), spacing "
+                     f"{plan.spacing:g} frames" + ("" if plan.spline else "; under 7 frames: no spline stage"))
+        final_width = plan.position_widths[-1]
+        spline_spacing, spline_refinements = plan.spacing, 0
+        lam = plan.velocity_weight
+        fit_rot, fit_trans = rot_a, trans_a
+        stage_update_rest = update_rest and rest is None
+    else:
+        stages = fixed_schedule
+        total_steps = len(stages)
+        spline_spacing, spline_refinements, lam = float(spacing), refinements, velocity_weight
+        fit_rot, fit_trans = rot0, trans0
+        stage_update_rest = update_rest and rest is None
+
+    def report(index: int, log: StageLog) -> None:
+        if progress is not None:
+            done = index + 1 + (1 if adaptive else 0)
+            progress(done / total_steps,
+                     f"stage {index + 1}/{len(stages)}: width {log.width_pos:g} cm, spacing "
+                     f"{log.spacing:g} frames, energy {log.energy_end:.6g}")
+
     stages_out: list[StageLog] = []
-    level = 0
-
-    def corrected(base: Tensor, delta: Tensor, from_level: int) -> Tensor:
-        """Add a correction of level `from_level`, refined to the finest level, to `base`."""
-        h = float(spacing) / 2 ** from_level
-        for _ in range(from_level, refinements):
-            h /= 2.0
-            delta = refine_midpoint(delta)[:num_control_points(num_frames, h)]
-        return base + delta
-
-    for index, stage in enumerate(schedule):
-        stage_started = time.perf_counter()
-        level += int(stage.refine)
-        current_spacing = float(spacing) / 2 ** level
-        if update_rest and rest is None and index > 0:
+    evaluations = iterations_done = 0
+    if stages:
+        # -- initial spline, at the finest spacing -------------------------------------------
+        final_spacing = float(spline_spacing) / 2 ** spline_refinements
+        basis = frame_basis(num_frames, final_spacing, device=dev)
+        if not adaptive and init is None:
+            base = dualquat_identity(basis.num_control, dtype=torch.float64, device=dev)
+        else:
+            dq = dualquat_from_rotation_translation(rotmat_to_quat(fit_rot.double().cpu()),
+                                                    fit_trans.double().cpu())
+            dq = dualquat_align_hemisphere(dq, dim=0).to(dev)
+            base = fit_control_points(dq, basis)
+        if rest_x is None:
             with torch.no_grad():
                 rot, trans = _spline_transforms(base, basis)
-            rest_x = _update_rest(x, rot.to(torch.float32), trans.to(torch.float32), rest_x,
-                                  stage.width_pos / scale, 3, block)
-        data = EnergyData(x, rest_x, stage.width_pos / scale, stage.width_vel / scale,
-                           float(velocity_weight), block, kernel)
-        shape = (num_control_points(num_frames, current_spacing), 8)
-        energies: list[float] = []
-
-        def objective(flat: Tensor) -> tuple[float, Tensor]:
-            delta = flat.view(shape).requires_grad_(True)
-            rot, trans = _spline_transforms(corrected(base, delta, level), basis)
-            energy = fused_energy(rot, trans, data)
-            (grad,) = torch.autograd.grad(energy, delta)
-            energies.append(float(energy.detach()))
-            return energies[-1], grad.reshape(-1)
-
-        zero = torch.zeros(shape[0] * shape[1], dtype=torch.float64, device=dev)
-        flat, _, stage_iters = lbfgs(objective, zero, iterations=iterations,
-                                     history_size=history_size) if iterations > 0 else (zero, 0.0, 0)
-        counters["evaluations"] += len(energies)
-        total_iterations += stage_iters
+                stab0 = torch.baddbmm(trans.to(x.dtype)[:, :, None], rot.to(x.dtype), x)
+                rest_x = stab0.median(dim=0).values.contiguous()                           # (3, E)
+                del stab0
+        control, rest_x, stages_out = _spline_stages(
+            x, base, basis, rest_x, stages, scale=scale, spacing=spline_spacing,
+            refinements=spline_refinements, velocity_weight=lam, iterations=iterations,
+            history_size=history_size, update_rest=stage_update_rest, block=block, kernel=kernel,
+            progress=report)
+        evaluations = sum(s.evaluations for s in stages_out)
+        iterations_done = sum(s.iterations for s in stages_out)
         with torch.no_grad():
-            base = dualquat_normalize(corrected(base, flat.view(shape), level))
-        stages_out.append(StageLog(
-            width_pos=stage.width_pos, width_vel=stage.width_vel,
-            spacing=current_spacing, control_points=shape[0],
-            iterations=stage_iters,
-            evaluations=len(energies),
-            energy_start=energies[0] if energies else float("nan"),
-            energy_end=energies[-1] if energies else float("nan"),
-            seconds=time.perf_counter() - stage_started,
-        ))
+            rot, trans = _spline_transforms(control, basis)
+    else:
+        rot, trans = fit_rot, fit_trans
+    assert rest_x is not None
+    if adaptive and polish_iterations > 0:
+        # -- polish: per-frame robust alignment to the mode at the final width ------------------
+        aligned = robust_align(x, rest_x, rot.to(dev), trans.to(dev), final_width / scale,
+                               iterations=polish_iterations, vertex_weights=weights_e)
+        rot, trans = aligned.rot, aligned.trans
         if progress is not None:
-            progress((index + 1) / len(schedule),
-                     f"stage {index + 1}/{len(schedule)}: width {stage.width_pos:g} cm, spacing "
-                     f"{current_spacing:g} frames, energy {stages_out[-1].energy_end:.6g}")
-    control = base
+            progress(1.0, f"polished every frame: robust alignment to the rest at {final_width:.3g} cm")
 
     # -- back to cm, skull-to-world ----------------------------------------------------------
-    with torch.no_grad():
-        rot, trans = _spline_transforms(control, basis)
-    rot, trans = rot.cpu(), trans.cpu()
+    rot, trans = rot.double().cpu(), trans.double().cpu()
     # Orthonormalise in float64 (the quaternion is normalised, this only removes rounding).
     u, _, vh = torch.linalg.svd(rot)
     rot = u @ vh
@@ -338,5 +526,5 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     matrices = invert_rigid_torch(world_to_skull)
     rest_cm = (rest_x.T.double().cpu() * scale + centre).to(torch.float32)
     return ModePursuitResult(matrices.numpy(), rest_cm.numpy(), ids.numpy().astype(np.int64),
-                             counters["evaluations"], total_iterations, stages_out,
-                             time.perf_counter() - started)
+                             evaluations, iterations_done, stages_out,
+                             time.perf_counter() - started, plan)

@@ -7,6 +7,7 @@ its optimizer are documented there).
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import numpy as np
 from pydantic import model_validator
@@ -20,19 +21,35 @@ __all__ = ["ModePursuit", "ModePursuitParams"]
 
 
 class ModePursuitParams(NodeParams):
-    """Parameters of `stabilize.ModePursuit` (defaults: the paper's widths)."""
+    """Parameters of `stabilize.ModePursuit` (default: the adaptive schedule; "fixed" = the paper's)."""
 
+    schedule: Literal["adaptive", "fixed"] = Param(
+        "adaptive", description="'adaptive': robust per-frame alignment to the rest's mode, widths "
+        "from the estimated noise (final = max(noise_multiple x noise, min_width_cm)), spline "
+        "spacing from the shot length, then a per-frame polish; the width lists, spacing and "
+        "refinements below are not used. 'fixed': the paper's schedule with those settings.")
+    noise_multiple: float = Param(5.0, gt=0, description="Adaptive: final width in estimated "
+                                                         "noise std (unitless).")
+    min_width_cm: float = Param(0.02, gt=0, description="Adaptive: smallest width (cm).")
+    polish_iterations: int = Param(3, ge=0, description="Adaptive: IRLS steps of the final "
+                                                        "per-frame robust alignment to the rest "
+                                                        "(0 = none).")
+    prior_group: str = Param("rigid", description="Adaptive: vertex group of (nearly) rigid "
+                             "vertices weighted prior_weight in the robust alignments; used only "
+                             "when the mesh has it (\"\" = none).")
+    prior_weight: float = Param(2.0, ge=0, description="Adaptive: weight of prior_group vertices "
+                                                       "(others 1; unitless).")
     position_widths: list[float] = Param(list(DEFAULT_POSITION_WIDTHS),
-                                         description="Continuation widths of the position penalty, "
+                                         description="Fixed schedule: continuation widths of the position penalty, "
                                                      "coarse to fine (cm).", min_length=1)
     velocity_widths: list[float] = Param(list(DEFAULT_VELOCITY_WIDTHS),
-                                         description="Continuation widths of the velocity penalty, "
+                                         description="Fixed schedule: continuation widths of the velocity penalty, "
                                                      "one per position width (cm/frame).", min_length=1)
     velocity_weight: float = Param(1.0, ge=0, description="Weight lambda of the velocity term "
                                                           "(unitless).")
-    spacing: float = Param(8.0, ge=1, description="Control-point spacing of the initial (coarsest) "
+    spacing: float = Param(8.0, ge=1, description="Fixed schedule: control-point spacing of the initial (coarsest) "
                                                   "dual-quaternion spline (frames).")
-    refinements: int = Param(2, ge=0, le=8, description="Midpoint refinements of the spline during "
+    refinements: int = Param(2, ge=0, le=8, description="Fixed schedule: midpoint refinements of the spline during "
                                                         "the schedule; the final spacing is "
                                                         "spacing / 2^refinements (frames).")
     iterations: int = Param(24, ge=0, description="L-BFGS iterations per stage (fixed count).")
@@ -66,13 +83,25 @@ class ModePursuit(Node):
 
     Finds the skull-to-world motion whose removal brings each vertex back to its rest position
     as often as possible (bounded penalty on positions and velocities, continuation over widths,
-    coarse-to-fine spline, L-BFGS). Outputs the motion and the stabilized mesh (all vertices).
+    spline, L-BFGS). Outputs the motion and the stabilized mesh (all vertices). The default
+    adaptive schedule needs no per-shot settings: it aligns every frame robustly to the rest's
+    mode (any head motion, any initialization), estimates the noise, ends the widths at a
+    multiple of it, adapts the spline spacing to the shot length and polishes each frame; the
+    chosen schedule is reported in the progress messages.
     """
 
     type_name = "stabilize.ModePursuit"
-    version = 1
+    version = 2
     kind = SEQUENCE
     Params = ModePursuitParams
+
+    @classmethod
+    def migrate(cls, from_version: int, params: dict) -> dict:
+        """Graphs written for v1 (the paper's fixed schedule only) keep it: schedule = "fixed"."""
+        params = dict(params)
+        if from_version < 2:
+            params.setdefault("schedule", "fixed")
+        return params
 
     mesh = In(MeshSequence, doc="Tracked mesh sequence, world frame, vertices in correspondence, cm.")
     init = In(RigidSequence, optional=True,
@@ -86,7 +115,7 @@ class ModePursuit(Node):
     def run(self, mesh: MeshSequence, init: RigidSequence | None = None,
             rest: MeshSequence | None = None) -> dict:
         p = self.params
-        if mesh.num_frames < 7:
+        if p.schedule == "fixed" and mesh.num_frames < 7:
             raise InputError("mesh", f"expected at least 7 frames (the velocity filter spans 7), "
                                      f"found {mesh.num_frames}")
         if p.group and p.group not in mesh.groups:
@@ -104,6 +133,10 @@ class ModePursuit(Node):
                 raise InputError("rest", f"expected {mesh.num_vertices} vertices (as 'mesh'), "
                                          f"found {rest.num_vertices}")
             rest_vertices = rest.vertices[0]
+        prior = None
+        if p.schedule == "adaptive" and p.prior_group and p.prior_group in mesh.groups and p.prior_weight != 1.0:
+            prior = np.ones(mesh.num_vertices, np.float32)
+            prior[np.asarray(mesh.groups[p.prior_group], np.int64)] = p.prior_weight
         import torch
 
         from .mode_pursuit import mode_pursuit
@@ -113,9 +146,12 @@ class ModePursuit(Node):
                                        f"is not available (use 'auto' or 'cpu')")
         result = mode_pursuit(
             mesh.vertices, init=None if init is None else init.matrices, rest=rest_vertices,
-            vertex_ids=ids, position_widths=p.position_widths, velocity_widths=p.velocity_widths,
+            vertex_ids=ids, vertex_weights=prior, schedule=p.schedule,
+            position_widths=p.position_widths, velocity_widths=p.velocity_widths,
             velocity_weight=p.velocity_weight, spacing=p.spacing, refinements=p.refinements,
             iterations=p.iterations, max_vertices=p.max_vertices, update_rest=p.update_rest,
+            noise_multiple=p.noise_multiple, min_width=p.min_width_cm,
+            polish_iterations=p.polish_iterations,
             device=p.device, compile=p.compile, progress=self.progress)
         stabilized = stabilize_vertices(mesh.vertices, result.matrices)
         return {"rigid": RigidSequence(np.ascontiguousarray(result.matrices, np.float64)),

@@ -25,6 +25,7 @@ import numpy as np
 __all__ = [
     "REST_THRESHOLD", "smoothstep", "envelope", "ExpressionEvent", "expression_curves",
     "blink_events", "speech_events", "expression_events", "busy_events", "place_events",
+    "held_expressions",
 ]
 
 REST_THRESHOLD = 0.05
@@ -278,3 +279,54 @@ def expression_curves(names: Sequence[str], num_frames: int, *, seed: int | np.r
     if busy:
         events += busy_events(rngs[3], index, num_frames, fps)
     return place_events(events, len(names), num_frames, rest_fraction=rest_fraction, rng=rngs[4])
+
+
+def held_expressions(names: Sequence[str], num_frames: int, *, rng: np.random.Generator,
+                     fps: float = 30.0, held_fraction: float = 0.0,
+                     start_strength: float = 0.0) -> np.ndarray:
+    """Strong held expressions (a hard case for stabilization), to add to `expression_curves`.
+
+    - `held_fraction` > 0: the timeline is cut into segments of 1-3 s; each segment, with
+      probability `held_fraction`, holds 2-4 random families at 0.6-1.0 (smoothstep attack
+      and release of 0.2 s inside the segment), so about that fraction of the frames shows a
+      strong expression.
+    - `start_strength` > 0: the shot starts in a strong expression: 3 random families at
+      `start_strength` held for the first second, released over the next 0.5 s.
+
+    Args:
+        names: K channel names (unknown family names are skipped).
+        num_frames: F.
+        rng: the generator (a stream of its own, so other curves do not change).
+        fps: frames per second.
+        held_fraction: in [0, 1].
+        start_strength: in [0, 1].
+    Returns:
+        (F, K) float32 weights >= 0 (to be added, then clipped to [0, 1]).
+    """
+    if not 0.0 <= held_fraction <= 1.0 or not 0.0 <= start_strength <= 1.0:
+        raise ValueError(f"held_fraction, start_strength: expected in [0, 1], found "
+                         f"{held_fraction}, {start_strength}")
+    index = _index(names)
+    out = np.zeros((num_frames, len(names)), np.float64)
+    t = np.arange(num_frames) / fps
+
+    def add(families: Sequence[int], gains: np.ndarray, shape: np.ndarray) -> None:
+        for fam, gain in zip(families, gains):
+            for name in _FAMILIES[fam]:
+                if name in index:
+                    out[:, index[name]] += gain * shape
+
+    if held_fraction > 0:
+        start, duration = 0.0, num_frames / fps
+        while start < duration:
+            length = rng.uniform(1.0, 3.0)
+            if rng.random() < held_fraction:
+                picks = rng.choice(len(_FAMILIES), size=rng.integers(2, 5), replace=False)
+                add(picks, rng.uniform(0.6, 1.0, len(picks)),
+                    envelope(t, start, 0.2, max(length - 0.4, 0.0), 0.2))
+            start += length
+    if start_strength > 0:
+        picks = rng.choice(len(_FAMILIES), size=3, replace=False)
+        shape = np.where(t < 1.0, 1.0, smoothstep((1.5 - t) / 0.5))
+        add(picks, np.full(3, start_strength), shape)
+    return out.astype(np.float32)

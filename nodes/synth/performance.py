@@ -33,13 +33,13 @@ import numpy as np
 from nodegraph import (FRAMEWISE, FaceModel, In, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, ParamSequence, RigidSequence)
 
-from .expressions import expression_curves
+from .expressions import expression_curves, held_expressions
 from .head_motion import MOTIONS, default_pivot, head_motion_curves, poses_to_matrices
 
 __all__ = ["SyntheticPerformance", "generate_performance", "upper_face_weights",
            "sliding_activation", "transform_points", "Performance"]
 
-_STREAM_IDENTITY, _STREAM_EXPRESSION, _STREAM_MOTION, _STREAM_NOISE, _STREAM_OUTLIER = range(5)
+_STREAM_IDENTITY, _STREAM_EXPRESSION, _STREAM_MOTION, _STREAM_NOISE, _STREAM_OUTLIER, _STREAM_HELD = range(6)
 _SLIDE_UP = ("browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",
              "eyeWide_L", "eyeWide_R")
 _SLIDE_DOWN = ("browDown_L", "browDown_R")
@@ -159,6 +159,7 @@ def generate_performance(model: FaceModel, *, num_frames: int, seed: int, fps: f
                          rest_fraction: float = 0.7, expression_rate_hz: float = 0.4,
                          noise_cm: float = 0.0, sliding_cm: float = 0.0,
                          outlier_fraction: float = 0.0, outlier_cm: float = 2.0,
+                         held_fraction: float = 0.0, start_expression: float = 0.0,
                          frames: range | None = None) -> SyntheticPerformance:
     """Generate a synthetic capture of `model` with its ground truth (see the module docstring).
 
@@ -179,6 +180,10 @@ def generate_performance(model: FaceModel, *, num_frames: int, seed: int, fps: f
         sliding_cm: peak forehead/scalp sliding (cm).
         outlier_fraction: probability of each vertex of each frame being an outlier.
         outlier_cm: smallest outlier offset (cm); offsets are 1-3 times this.
+        held_fraction: about this fraction of frames holds strong expressions (2-4 families
+            at 0.6-1.0, see `expressions.held_expressions`); 0 = none (default, unchanged).
+        start_expression: strength of a strong expression (3 families) held over the first
+            second and released over 0.5 s; 0 = none (default, unchanged).
         frames: absolute frames to produce (a sub-range of range(num_frames)); None = all.
     Returns:
         SyntheticPerformance for `frames`: capture (world) and stabilized (skull) meshes
@@ -203,6 +208,10 @@ def generate_performance(model: FaceModel, *, num_frames: int, seed: int, fps: f
     weights_all = expression_curves(names, num_frames, seed=streams[_STREAM_EXPRESSION], fps=fps,
                                     rest_fraction=rest_fraction,
                                     expression_rate_hz=expression_rate_hz)
+    if held_fraction > 0 or start_expression > 0:
+        extra = held_expressions(names, num_frames, rng=np.random.default_rng([seed, _STREAM_HELD]),
+                                 fps=fps, held_fraction=held_fraction, start_strength=start_expression)
+        weights_all = np.clip(weights_all + extra, 0.0, 1.0).astype(np.float32)
     angles, trans = head_motion_curves(num_frames, seed=streams[_STREAM_MOTION], fps=fps,
                                        motion=motion, rotation_deg=rotation_deg,
                                        translation_cm=translation_cm,
@@ -295,6 +304,10 @@ class Performance(Node):
         outlier_fraction: float = Param(0.0, description="probability of a vertex being an "
                                                          "outlier in a frame", ge=0, le=1)
         outlier_cm: float = Param(2.0, description="smallest outlier offset (cm; up to 3x)", ge=0)
+        held_fraction: float = Param(0.0, description="about this fraction of frames holds strong "
+                                                      "expressions (0 = none)", ge=0, le=1)
+        start_expression: float = Param(0.0, description="strength of a strong expression held "
+                                                         "over the first second (0 = none)", ge=0, le=1)
 
     model = In(FaceModel, doc="face model (ARKit expression names)")
     capture = Out(MeshSequence, doc="world-space capture, with artefacts (cm)")
@@ -321,5 +334,6 @@ class Performance(Node):
             pivot_cm=tuple(p.pivot_cm) if p.pivot_cm else None, rest_fraction=p.rest_fraction,
             expression_rate_hz=p.expression_rate_hz, noise_cm=p.noise_cm,
             sliding_cm=p.sliding_cm, outlier_fraction=p.outlier_fraction,
-            outlier_cm=p.outlier_cm, frames=self.frames)
+            outlier_cm=p.outlier_cm, held_fraction=p.held_fraction,
+            start_expression=p.start_expression, frames=self.frames)
         return result._asdict()

@@ -173,7 +173,8 @@ def test_mode_pursuit_recovers_head_motion_from_kabsch_init():
     world, truth, skull = _synthetic_capture(frames=620, vertices=300, seed=0)
     init = _kabsch_init(world)
     messages = []
-    result = mode_pursuit(world, init=init, device="cpu", progress=lambda f, m: messages.append((f, m)))
+    result = mode_pursuit(world, init=init, schedule="fixed", device="cpu",
+                          progress=lambda f, m: messages.append((f, m)))
     err = _motion_errors(result.matrices, truth, skull)
     err_init = _motion_errors(init, truth, skull)
     assert np.median(err) < 0.02, np.median(err)
@@ -212,7 +213,11 @@ def test_mode_pursuit_with_true_rest_and_vertex_subset_keeps_skull_frame():
 def test_mode_pursuit_rejects_bad_input():
     world = np.zeros((6, 10, 3), np.float32)
     with pytest.raises(ValueError, match=r"vertices: expected at least 7 frames .* found 6"):
-        mode_pursuit(world)
+        mode_pursuit(world, schedule="fixed")
+    with pytest.raises(ValueError, match=r"vertices: expected at least 1 frames, found 0"):
+        mode_pursuit(world[:0])
+    with pytest.raises(ValueError, match=r"schedule: expected 'adaptive' or 'fixed', found 'paper'"):
+        mode_pursuit(world, schedule="paper")
     world = np.random.default_rng(0).normal(size=(20, 10, 3)).astype(np.float32)
     with pytest.raises(ValueError, match=r"init: expected shape \(20, 4, 4\), found \(19, 4, 4\)"):
         mode_pursuit(world, init=np.tile(np.eye(4), (19, 1, 1)))
@@ -267,7 +272,7 @@ def test_node_errors_name_port_or_param():
     with pytest.raises(NodeError, match=r"'group': expected a vertex group 'lips' of the mesh, found groups \['face'\]"):
         run_node(ModePursuit, {"group": "lips"}, mesh=mesh)
     with pytest.raises(NodeError, match=r"'mesh': expected at least 7 frames .* found 5"):
-        run_node(ModePursuit, {}, mesh=_small_mesh(frames=5))
+        run_node(ModePursuit, {"schedule": "fixed"}, mesh=_small_mesh(frames=5))
     with pytest.raises(NodeError, match=r"'group': expected at least 3 vertices in group 'tiny', found 2"):
         run_node(ModePursuit, {"group": "tiny"}, mesh=_small_mesh(groups={"tiny": np.array([1, 2])}))
     rest = MeshSequence(vertices=np.zeros((2, 30, 3), np.float32))

@@ -1,0 +1,209 @@
+"""Robust per-frame alignment to a rest shape, mode-seeking rest estimates and a noise estimate.
+
+The pieces mode pursuit uses around its spline stages (see `mode_pursuit.py`):
+
+- `weighted_kabsch`: per-frame weighted least-squares rigid fit of (F, 3, V) points onto one
+  (3, V) rest shape (Kabsch 1976 / Umeyama 1991), batched over frames. Closed form, so it
+  has no basin: any head rotation is recovered in one step once the weights are right.
+- `robust_align`: iteratively reweighted Kabsch (IRLS) with the weights of the bounded
+  penalty `psi_w` applied to each vertex's distance `r = |S_fv - R_v|` (cm):
+  `k(r) = psi_w'(r) / r ∝ 1` for `r < w/2`, `(w - r) / r` for `w/2 <= r < w`, 0 beyond.
+  Each step decreases `sum_fv psi_w(r_fv)` (a redescending M-estimator), so vertices
+  moving with an expression, outliers and sliding skin drop out of a frame's fit.
+- `rest_mode`: the per-vertex mode of the stabilized positions over frames: start at the
+  candidate frame (of up to 64 evenly spaced ones) with the most samples within `radius`,
+  then mean-shift with a flat kernel. Unlike the median it finds the rest also when a vertex
+  is away from it (an expression) in most frames, as long as the rest is the densest place.
+- `noise_level`: the tracking noise std (cm) from second differences over frames of the
+  stabilized positions, `sigma = 1.4826 median|S_{f+1} - 2 S_f + S_{f-1}| / sqrt(6)`:
+  i.i.d. noise passes with variance 6 sigma^2, while head motion (removed), held expressions
+  and slow expressions give near-zero second differences, and the median ignores the
+  minority of fast-moving coordinates.
+
+Layout: coordinates first, `x` (F, 3, V) float32 as in the mode-pursuit optimizer;
+`S_f = rot_f x_f + trans_f`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["RobustAlignment", "weighted_kabsch", "psi_weights", "robust_align", "rest_mode",
+           "noise_level", "residual_scale", "apply_transforms"]
+
+
+class RobustAlignment(NamedTuple):
+    """Result of `robust_align`.
+
+    Attributes:
+        rot: (F, 3, 3) float64 rotations (world -> skull).
+        trans: (F, 3) float64 translations, units of `x`: `S_f = rot_f x_f + trans_f`.
+        weights: (F, V) float32 final IRLS weights in [0, 1] (0 = ignored in that frame).
+    """
+
+    rot: Tensor
+    trans: Tensor
+    weights: Tensor
+
+
+def apply_transforms(x: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
+    """Return `S_f = rot_f x_f + trans_f` as (F, 3, V) in x's dtype (x is (F, 3, V))."""
+    return torch.baddbmm(trans.to(x.dtype)[:, :, None], rot.to(x.dtype), x)
+
+
+def weighted_kabsch(x: Tensor, rest: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Per-frame rigid fit minimising `sum_v w_fv |rot_f x_fv + trans_f - rest_v|^2`.
+
+    Args:
+        x: (F, 3, V) points per frame (any unit).
+        rest: (3, V) target points, same unit.
+        weights: (F, V) >= 0, or None for uniform; a frame whose weights sum to 0 gets
+            uniform weights (its fit is then plain least squares).
+    Returns:
+        rot (F, 3, 3) float64 (det +1), trans (F, 3) float64.
+    """
+    if x.ndim != 3 or x.shape[1] != 3:
+        raise ValueError(f"x: expected shape (F, 3, V), found {tuple(x.shape)}")
+    if rest.shape != x.shape[1:]:
+        raise ValueError(f"rest: expected shape {tuple(x.shape[1:])} (from x), found {tuple(rest.shape)}")
+    f, _, v = x.shape
+    if weights is None:
+        weights = x.new_ones(f, v)
+    w = weights.to(x.dtype)
+    total = w.sum(1, keepdim=True)
+    w = torch.where(total > 0, w / total.clamp(min=1e-30), torch.full_like(w, 1.0 / v))
+    wx = x * w[:, None, :]
+    cx = wx.sum(2).double()                                              # (F, 3)
+    cr = (w @ rest.T).double()                                           # (F, 3)
+    cov = torch.bmm(wx, rest.T.expand(f, v, 3)).double() - cx[:, :, None] * cr[:, None, :]
+    u, _, vh = torch.linalg.svd(cov)                                     # cov = U S V^T
+    d = torch.sign(torch.linalg.det(vh.transpose(1, 2) @ u.transpose(1, 2)))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    fix = torch.ones(f, 3, dtype=torch.float64, device=x.device)
+    fix[:, 2] = d
+    rot = vh.transpose(1, 2) @ (fix[:, :, None] * u.transpose(1, 2))    # V diag(1,1,d) U^T
+    trans = cr - (rot @ cx[:, :, None])[:, :, 0]
+    return rot, trans
+
+
+def psi_weights(distance: Tensor, width: float) -> Tensor:
+    """IRLS weights `psi_w'(r) / r`, scaled to 1 at 0, of distances r = |S - R| (same unit as width).
+
+    Returns:
+        (...) in [0, 1]: 1 for r < w/2, (w - r) / r for w/2 <= r < w, 0 beyond.
+    """
+    u = distance / width
+    return torch.where(u < 0.5, torch.ones_like(u), (1.0 - u).clamp(min=0.0) / u.clamp(min=0.5))
+
+
+def _distances(x: Tensor, rot: Tensor, trans: Tensor, rest: Tensor) -> Tensor:
+    """(F, V) distances |rot_f x_fv + trans_f - rest_v|."""
+    return apply_transforms(x, rot, trans).sub_(rest).square_().sum(1).sqrt_()
+
+
+def residual_scale(distance: Tensor) -> float:
+    """Robust scale of distances: median over all entries (same unit)."""
+    flat = distance.reshape(-1)
+    if flat.numel() > 1 << 20:  # a strided subset is as good a median and much faster
+        flat = flat[:: flat.numel() // (1 << 20) + 1]
+    return float(flat.median())
+
+
+def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: float, *,
+                 iterations: int = 4, vertex_weights: Tensor | None = None) -> RobustAlignment:
+    """Iteratively reweighted Kabsch of every frame onto the rest, bounded penalty of width w.
+
+    Minimises `sum_{f, v} c_v psi_w(|rot_f x_fv + trans_f - rest_v|)` per frame by IRLS
+    (weights `c_v psi_w'(r) / r`, see the module docstring), starting from (rot, trans).
+
+    Args:
+        x: (F, 3, V) float32 points.
+        rest: (3, V) rest shape.
+        rot, trans: (F, 3, 3), (F, 3) starting transforms.
+        width: w > 0 (units of x).
+        iterations: IRLS steps (each one Kabsch per frame).
+        vertex_weights: (V,) prior weights c_v >= 0 (e.g. higher on a rigid region), or None.
+    Returns:
+        RobustAlignment. A frame with no vertex within w keeps least-squares weights.
+    """
+    if not width > 0:
+        raise ValueError(f"width: expected > 0, found {width}")
+    rot, trans = rot.double(), trans.double()
+    weights = x.new_ones(x.shape[0], x.shape[2])
+    for _ in range(iterations):
+        weights = psi_weights(_distances(x, rot, trans, rest), width)
+        if vertex_weights is not None:
+            weights = weights * vertex_weights.to(weights.dtype)
+        rot, trans = weighted_kabsch(x, rest, weights)
+    return RobustAlignment(rot, trans, weights)
+
+
+def rest_mode(stab: Tensor, radius: float, *, start: Tensor | None = None, steps: int = 3,
+              candidates: int = 32, block_frames: int = 64) -> Tensor:
+    """Return each vertex's mode over frames of its stabilized positions (see the module docstring).
+
+    Args:
+        stab: (F, 3, V) stabilized positions.
+        radius: kernel radius (units of stab), > 0.
+        start: (3, V) starting modes: skip the candidate search and only mean-shift from
+            there (cheap: one pass over the frames per step).
+        steps: mean-shift steps after the candidate search (flat kernel of `radius`).
+        candidates: at most this many evenly spaced candidate frames.
+        block_frames: frames per block (bounds memory).
+    Returns:
+        (3, V) mode estimates; a vertex with no sample within `radius` of any candidate keeps
+        its per-vertex median.
+    """
+    f, _, v = stab.shape
+    r2 = radius * radius
+    if start is not None:
+        return _mean_shift(stab, start, r2, steps, block_frames)
+    median = stab.median(dim=0).values
+    if f <= 2:
+        return median
+    picks = torch.unique(torch.linspace(0, f - 1, min(candidates, f), device=stab.device).round().long())
+    counts = torch.zeros(picks.numel() + 1, v, dtype=stab.dtype, device=stab.device)
+    centres = torch.cat([stab[picks], median[None]], 0)                  # (C + 1, 3, V)
+    for a in range(0, f, block_frames):
+        s = stab[a:a + block_frames]                                     # (B, 3, V)
+        for c in range(centres.shape[0]):
+            d2 = (s - centres[c]).square_().sum(1)                       # (B, V)
+            counts[c] += (d2 < r2).sum(0).to(stab.dtype)
+    best = counts.argmax(0)                                              # (V,)
+    mode = centres.gather(0, best[None, None, :].expand(1, 3, v))[0]     # (3, V)
+    return _mean_shift(stab, mode, r2, steps, block_frames)
+
+
+def _mean_shift(stab: Tensor, mode: Tensor, r2: float, steps: int, block_frames: int) -> Tensor:
+    """Flat-kernel mean shift of (3, V) modes over (F, 3, V) samples (squared radius r2)."""
+    f, _, v = stab.shape
+    for _ in range(steps):
+        num = torch.zeros_like(mode)
+        den = torch.zeros(v, dtype=stab.dtype, device=stab.device)
+        for a in range(0, f, block_frames):
+            d = stab[a:a + block_frames] - mode
+            inside = (d.square().sum(1) < r2).to(stab.dtype)             # (B, V)
+            num += (d * inside[:, None, :]).sum(0)
+            den += inside.sum(0)
+        mode = mode + num / den.clamp(min=1.0)
+    return mode
+
+
+def noise_level(stab: Tensor) -> float:
+    """Tracking-noise std from second differences over frames (see the module docstring).
+
+    Args:
+        stab: (F, 3, V) stabilized positions, F >= 3.
+    Returns:
+        sigma (units of stab); 0.0 when F < 3.
+    """
+    if stab.shape[0] < 3:
+        return 0.0
+    d2 = (stab[2:] - 2.0 * stab[1:-1] + stab[:-2]).abs().reshape(-1)
+    if d2.numel() > 1 << 21:
+        d2 = d2[:: d2.numel() // (1 << 21) + 1]
+    return float(d2.median()) * 1.4826 / math.sqrt(6.0)
