@@ -8,6 +8,6 @@ modules import those inside `run()` (see tests/test_startup.py).
 
 from ._areas import import_modules
 
-AREAS = ["io", "synth", "rigid", "stabilize", "report"]
+AREAS = ["io", "synth", "rigid", "stabilize", "report", "render", "landmarks", "dynamics"]
 
 import_modules(__name__, AREAS)

@@ -1,0 +1,355 @@
+"""A small TensorFlow Lite reader and an op-by-op torch replay of its graph (differentiable).
+
+`read_tflite(path)` parses a `.tflite` flatbuffer (through the PyPI package `tflite`) into
+plain Python: tensors (name, shape, dtype, constant data or None) and operators (name,
+input and output tensor indices, options). `TfliteModule(graph)` turns every constant into a
+frozen `nn.Parameter` (float16 weights are dequantized once to float32) and replays the
+operators with `torch.nn.functional`, so gradients flow from the outputs back to the input
+image (and, after `requires_grad_(True)`, to the weights).
+
+Supported operators (the set of MediaPipe's face detector and face mesh):
+DEQUANTIZE, CONV_2D, DEPTHWISE_CONV_2D, ADD, PRELU, RELU, MAX_POOL_2D, PAD, RESHAPE,
+CONCATENATION, with fused NONE / RELU / RELU6 / RELU_N1_TO_1 activations and TF "SAME"
+(asymmetric, extra pixel after) or "VALID" padding. Anything else raises `ValueError` naming
+the operator.
+
+Layout: TFLite activations are NHWC; the replay keeps 4-D activations NCHW internally
+(torch's fast path) and converts back to NHWC wherever the layout is observable (RESHAPE,
+CONCATENATION on a non-channel axis, and the graph outputs), so outputs have exactly the
+shapes and values TFLite gives.
+
+This module imports torch at the top: import it from node `run()` methods, not from the
+package `__init__`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["TfliteTensor", "TfliteOperator", "TfliteGraph", "read_tflite", "TfliteModule",
+           "SUPPORTED_OPERATORS"]
+
+SUPPORTED_OPERATORS = ("DEQUANTIZE", "CONV_2D", "DEPTHWISE_CONV_2D", "ADD", "PRELU", "RELU",
+                       "MAX_POOL_2D", "PAD", "RESHAPE", "CONCATENATION")
+"""Operators `TfliteModule` replays."""
+
+_NUMPY_TYPES = {0: np.float32, 1: np.float16, 2: np.int32, 3: np.uint8, 4: np.int64, 9: np.int8}
+
+
+@dataclass
+class TfliteTensor:
+    """One tensor of a TFLite graph.
+
+    Attributes:
+        name: the tensor's name in the file.
+        shape: its shape (NHWC for images).
+        dtype: numpy dtype of its elements.
+        data: the constant value (weights, biases, shape vectors), or None for activations.
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: Any
+    data: np.ndarray | None = None
+
+
+@dataclass
+class TfliteOperator:
+    """One operator: builtin name, tensor indices in and out, parsed options."""
+
+    name: str
+    inputs: list[int]
+    outputs: list[int]
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class TfliteGraph:
+    """A parsed TFLite subgraph: tensors, operators in execution order, graph inputs/outputs."""
+
+    tensors: list[TfliteTensor]
+    operators: list[TfliteOperator]
+    inputs: list[int]
+    outputs: list[int]
+    source: str = ""
+
+    def tensor_index(self, name: str) -> int:
+        """Index of the tensor called `name` (ValueError listing the outputs when absent)."""
+        for index, tensor in enumerate(self.tensors):
+            if tensor.name == name:
+                return index
+        raise ValueError(f"{self.source}: no tensor named {name!r}; outputs are "
+                         f"{[self.tensors[i].name for i in self.outputs]}")
+
+
+def _options(op: Any, name: str) -> dict[str, Any]:
+    import tflite
+
+    table = op.BuiltinOptions()
+    classes = {"CONV_2D": tflite.Conv2DOptions, "DEPTHWISE_CONV_2D": tflite.DepthwiseConv2DOptions,
+               "MAX_POOL_2D": tflite.Pool2DOptions, "ADD": tflite.AddOptions,
+               "CONCATENATION": tflite.ConcatenationOptions, "RESHAPE": tflite.ReshapeOptions}
+    if table is None or name not in classes:
+        return {}
+    opt = classes[name]()
+    opt.Init(table.Bytes, table.Pos)
+    out: dict[str, Any] = {}
+    if name in ("CONV_2D", "DEPTHWISE_CONV_2D", "MAX_POOL_2D"):
+        out.update(padding="SAME" if opt.Padding() == tflite.Padding.SAME else "VALID",
+                   stride=(opt.StrideH(), opt.StrideW()), activation=opt.FusedActivationFunction())
+    if name in ("CONV_2D", "DEPTHWISE_CONV_2D"):
+        out["dilation"] = (opt.DilationHFactor(), opt.DilationWFactor())
+    if name == "DEPTHWISE_CONV_2D":
+        out["depth_multiplier"] = opt.DepthMultiplier()
+    if name == "MAX_POOL_2D":
+        out["filter"] = (opt.FilterHeight(), opt.FilterWidth())
+    if name in ("ADD", "CONCATENATION"):
+        out["activation"] = opt.FusedActivationFunction()
+    if name == "CONCATENATION":
+        out["axis"] = opt.Axis()
+    if name == "RESHAPE" and not opt.NewShapeIsNone():
+        out["new_shape"] = [int(v) for v in opt.NewShapeAsNumpy()]
+    return out
+
+
+def read_tflite(path: str | Path) -> TfliteGraph:
+    """Parse the first subgraph of a `.tflite` file.
+
+    Args:
+        path: the flatbuffer file.
+    Returns:
+        TfliteGraph with constant tensors' data as numpy arrays of their stored dtype.
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a TFLite flatbuffer, or a tensor of an unsupported element type.
+    """
+    import tflite
+
+    path = Path(path)
+    buf = path.read_bytes()
+    if len(buf) < 8 or buf[4:8] != b"TFL3":
+        raise ValueError(f"path: '{path}' is not a TFLite flatbuffer (no 'TFL3' identifier)")
+    model = tflite.Model.GetRootAsModel(buf, 0)
+    graph = model.Subgraphs(0)
+    names = {v: k for k, v in vars(tflite.BuiltinOperator).items() if not k.startswith("_")}
+    codes = []
+    for i in range(model.OperatorCodesLength()):
+        code = model.OperatorCodes(i)
+        codes.append(names.get(max(code.BuiltinCode(), code.DeprecatedBuiltinCode()), "CUSTOM"))
+    tensors = []
+    for i in range(graph.TensorsLength()):
+        t = graph.Tensors(i)
+        if t.Type() not in _NUMPY_TYPES:
+            raise ValueError(f"path: '{path}': tensor {t.Name().decode()!r} has TFLite type "
+                             f"{t.Type()}, expected one of {sorted(_NUMPY_TYPES)}")
+        dtype = _NUMPY_TYPES[t.Type()]
+        shape = tuple(int(s) for s in t.ShapeAsNumpy()) if t.ShapeLength() else ()
+        raw = model.Buffers(t.Buffer()).DataAsNumpy() if t.Buffer() < model.BuffersLength() else 0
+        data = None
+        if isinstance(raw, np.ndarray) and raw.size:
+            data = np.frombuffer(raw.tobytes(), dtype=dtype).reshape(shape)
+        tensors.append(TfliteTensor(t.Name().decode(), shape, dtype, data))
+    operators = []
+    for i in range(graph.OperatorsLength()):
+        op = graph.Operators(i)
+        name = codes[op.OpcodeIndex()]
+        operators.append(TfliteOperator(name, [int(v) for v in op.InputsAsNumpy()],
+                                        [int(v) for v in op.OutputsAsNumpy()], _options(op, name)))
+    return TfliteGraph(tensors, operators, [int(v) for v in graph.InputsAsNumpy()],
+                       [int(v) for v in graph.OutputsAsNumpy()], source=str(path))
+
+
+def _same_pad(size: int, kernel: int, stride: int, dilation: int) -> tuple[int, int]:
+    """TF 'SAME' padding (before, after) of one axis: the extra pixel goes after."""
+    out = -(-size // stride)
+    total = max((out - 1) * stride + (kernel - 1) * dilation + 1 - size, 0)
+    return total // 2, total - total // 2
+
+
+def _activate(x: Tensor, code: int) -> Tensor:
+    if code == 0:
+        return x
+    if code == 1:
+        return F.relu(x)
+    if code == 2:
+        return x.clamp(-1.0, 1.0)
+    if code == 3:
+        return x.clamp(0.0, 6.0)
+    raise ValueError(f"fused activation: expected NONE, RELU, RELU_N1_TO_1 or RELU6, found code {code}")
+
+
+class TfliteModule(nn.Module):
+    """Replay a TFLite graph with torch ops (see the module docstring).
+
+    Args:
+        graph: the parsed graph (`read_tflite`).
+        outputs: names of the tensors `forward` returns, in order; default the graph outputs.
+
+    Forward:
+        image: (B, H, W, C) float tensor, NHWC like the TFLite input (any batch size B; H, W
+            as the file's input).
+        Returns a tuple of tensors, one per output, each (B, ...) as TFLite shapes it (the
+        file's leading 1 replaced by B).
+
+    Note:
+        Weights are frozen `nn.Parameter`s (`requires_grad=False`); the module is float32 and
+        can be moved with `.to(device)` / `.double()` (float64 for gradient checks).
+    """
+
+    def __init__(self, graph: TfliteGraph, outputs: list[str] | None = None):
+        super().__init__()
+        self.graph = graph
+        unsupported = sorted({op.name for op in graph.operators} - set(SUPPORTED_OPERATORS))
+        if unsupported:
+            raise ValueError(f"{graph.source}: unsupported TFLite operator(s) {unsupported}; "
+                             f"supported: {list(SUPPORTED_OPERATORS)}")
+        self.output_indices = ([graph.tensor_index(n) for n in outputs] if outputs
+                               else list(graph.outputs))
+        self.weights = nn.ParameterDict()
+        self._const: dict[int, str] = {}
+        self._conv: dict[int, tuple[str, str | None]] = {}
+        raw: dict[int, Tensor] = {}
+        for index, tensor in enumerate(graph.tensors):
+            if tensor.data is not None and tensor.dtype in (np.float16, np.float32):
+                raw[index] = torch.from_numpy(tensor.data.astype(np.float32))
+        for op in graph.operators:  # a DEQUANTIZE output is its input's constant, converted once
+            if op.name == "DEQUANTIZE" and op.inputs[0] in raw:
+                raw[op.outputs[0]] = raw[op.inputs[0]]
+        prepared: set[int] = set()
+        for k, op in enumerate(graph.operators):
+            if op.name in ("CONV_2D", "DEPTHWISE_CONV_2D"):
+                w = raw[op.inputs[1]]
+                # CONV_2D weights OHWI -> OIHW; DEPTHWISE 1HW(C*M) -> (C*M)1HW
+                w = w.permute(0, 3, 1, 2) if op.name == "CONV_2D" else w.permute(3, 0, 1, 2)
+                self.weights[f"op{k}_w"] = nn.Parameter(w.contiguous(), requires_grad=False)
+                bias = None
+                if len(op.inputs) > 2 and op.inputs[2] >= 0:
+                    bias = f"op{k}_b"
+                    self.weights[bias] = nn.Parameter(raw[op.inputs[2]].clone(), requires_grad=False)
+                self._conv[k] = (f"op{k}_w", bias)
+                prepared.update(op.inputs[1:3])
+            elif op.name == "PRELU":  # alpha (..., C) -> (C, 1, 1) for NCHW
+                alpha = raw[op.inputs[1]].reshape(-1, 1, 1).contiguous()
+                self.weights[f"op{k}_alpha"] = nn.Parameter(alpha, requires_grad=False)
+                self._conv[k] = (f"op{k}_alpha", None)
+                prepared.add(op.inputs[1])
+        for op in graph.operators:  # constants used as plain operands (ADD, CONCATENATION)
+            if op.name in ("ADD", "CONCATENATION"):
+                for i in op.inputs:
+                    if i in raw and i not in self._const:
+                        self._const[i] = f"t{i}"
+                        self.weights[f"t{i}"] = nn.Parameter(raw[i].clone(), requires_grad=False)
+
+    def _value(self, values: dict[int, Tensor], index: int) -> Tensor:
+        if index in values:
+            return values[index]
+        if index in self._const:
+            return self.weights[self._const[index]]
+        raise ValueError(f"{self.graph.source}: tensor {self.graph.tensors[index].name!r} is used "
+                         "before it is computed")
+
+    def forward(self, image: Tensor) -> tuple[Tensor, ...]:
+        g = self.graph
+        values: dict[int, Tensor] = {}
+        nchw: set[int] = set()  # tensors stored NCHW (4-D activations)
+        x = image.permute(0, 3, 1, 2)
+        values[g.inputs[0]] = x
+        nchw.add(g.inputs[0])
+
+        def as_nhwc(i: int) -> Tensor:
+            v = values[i]
+            return v.permute(0, 2, 3, 1) if i in nchw else v
+
+        for k, op in enumerate(g.operators):
+            name, ins, out = op.name, op.inputs, op.outputs[0]
+            if name == "DEQUANTIZE":
+                if g.tensors[ins[0]].data is not None:  # weights: converted in __init__
+                    continue
+                values[out] = values[ins[0]].float()
+                if ins[0] in nchw:
+                    nchw.add(out)
+                continue
+            if name in ("CONV_2D", "DEPTHWISE_CONV_2D"):
+                x = values[ins[0]]
+                w_key, b_key = self._conv[k]
+                w = self.weights[w_key]
+                b = self.weights[b_key] if b_key else None
+                o = op.options
+                (sh, sw), (dh, dw) = o["stride"], o["dilation"]
+                kh, kw = w.shape[2], w.shape[3]
+                if o["padding"] == "SAME":
+                    ph = _same_pad(x.shape[2], kh, sh, dh)
+                    pw = _same_pad(x.shape[3], kw, sw, dw)
+                    if any(ph + pw):
+                        x = F.pad(x, (pw[0], pw[1], ph[0], ph[1]))
+                groups = x.shape[1] if name == "DEPTHWISE_CONV_2D" else 1
+                y = F.conv2d(x, w, b, stride=(sh, sw), dilation=(dh, dw), groups=groups)
+                values[out] = _activate(y, o["activation"])
+                nchw.add(out)
+            elif name == "PRELU":
+                x = values[ins[0]]
+                alpha = self.weights[self._conv[k][0]]
+                if ins[0] not in nchw:
+                    raise ValueError(f"{g.source}: PRELU on a non-image tensor is not supported")
+                values[out] = torch.where(x >= 0, x, x * alpha)
+                nchw.add(out)
+            elif name == "RELU":
+                values[out] = F.relu(values[ins[0]])
+                if ins[0] in nchw:
+                    nchw.add(out)
+            elif name == "ADD":
+                a, b = self._value(values, ins[0]), self._value(values, ins[1])
+                if (ins[0] in nchw) != (ins[1] in nchw):
+                    raise ValueError(f"{g.source}: ADD of an image and a non-image tensor is not supported")
+                values[out] = _activate(a + b, op.options.get("activation", 0))
+                if ins[0] in nchw:
+                    nchw.add(out)
+            elif name == "MAX_POOL_2D":
+                x = values[ins[0]]
+                o = op.options
+                (sh, sw), (kh, kw) = o["stride"], o["filter"]
+                if o["padding"] == "SAME":
+                    ph = _same_pad(x.shape[2], kh, sh, 1)
+                    pw = _same_pad(x.shape[3], kw, sw, 1)
+                    if any(ph + pw):
+                        x = F.pad(x, (pw[0], pw[1], ph[0], ph[1]), value=float("-inf"))
+                values[out] = _activate(F.max_pool2d(x, (kh, kw), (sh, sw)), o["activation"])
+                nchw.add(out)
+            elif name == "PAD":
+                pads = g.tensors[ins[1]].data
+                if pads is None:
+                    raise ValueError(f"{g.source}: PAD with computed paddings is not supported")
+                pads = np.asarray(pads).reshape(-1, 2).tolist()
+                if ins[0] in nchw:  # NHWC paddings -> F.pad order (W, H, C)
+                    (_, _), (h0, h1), (w0, w1), (c0, c1) = pads
+                    values[out] = F.pad(values[ins[0]], (w0, w1, h0, h1, c0, c1))
+                    nchw.add(out)
+                else:
+                    flat = [p for pair in reversed(pads) for p in pair]
+                    values[out] = F.pad(values[ins[0]], flat)
+            elif name == "RESHAPE":
+                x = as_nhwc(ins[0])
+                shape = op.options.get("new_shape")
+                if shape is None and len(ins) > 1:
+                    shape = [int(v) for v in np.asarray(g.tensors[ins[1]].data).reshape(-1)]
+                shape = [x.shape[0]] + list(shape[1:])  # batch follows the input
+                values[out] = x.reshape(shape)
+            elif name == "CONCATENATION":
+                axis = op.options["axis"]
+                parts = [self._value(values, i) for i in ins]
+                if all(i in nchw for i in ins):
+                    axis = axis % 4
+                    values[out] = _activate(torch.cat(parts, {0: 0, 1: 2, 2: 3, 3: 1}[axis]),
+                                            op.options["activation"])
+                    nchw.add(out)
+                else:
+                    parts = [as_nhwc(i) if i in values else self._value(values, i) for i in ins]
+                    values[out] = _activate(torch.cat(parts, axis), op.options["activation"])
+        return tuple(as_nhwc(i) for i in self.output_indices)
