@@ -270,9 +270,8 @@ class Graph:
         if self.base_dir is None:
             return params
         for name in path_params(registry.get(spec.type)):
-            value = params.get(name)
-            if isinstance(value, str) and value and not os.path.isabs(value):
-                params[name] = os.path.normpath(os.path.join(self.base_dir, value))
+            if name in params:
+                params[name] = _join_paths(self.base_dir, params[name])
         return params
 
     def upstream(self, node_id: str) -> dict[str, PortRef]:
@@ -542,8 +541,15 @@ def _no_constant(name: str) -> Any:
 def _from_working_folder(cls: type[Node], param: str, value: Any) -> Any:
     """A relative path given on the command line (or from Python) is relative to the working
     folder: make it absolute so that the graph file's folder does not apply to it."""
-    if param in path_params(cls) and isinstance(value, str) and value and not os.path.isabs(value):
-        return os.path.abspath(value)
+    return _join_paths(Path.cwd(), value) if param in path_params(cls) else value
+
+
+def _join_paths(base: Path, value: Any) -> Any:
+    """Relative path strings in `value` (a path or a list of paths) joined to `base`."""
+    if isinstance(value, list):
+        return [_join_paths(base, item) for item in value]
+    if isinstance(value, str) and value and not os.path.isabs(value):
+        return os.path.normpath(os.path.join(base, value))
     return value
 
 

@@ -69,6 +69,17 @@ class TaskResult:
                 "error": self.error, "seconds": self.seconds}
 
 
+_STDERR_LOCK = threading.Lock()
+
+
+def emit_json(event: Mapping[str, Any]) -> None:
+    """Write one JSON line to stderr in one write (threads never interleave inside a line)."""
+    line = json.dumps(event, default=str) + "\n"
+    with _STDERR_LOCK:
+        sys.stderr.write(line)
+        sys.stderr.flush()
+
+
 def _progress_callback(spec: TaskSpec) -> Callable[[float, str], None] | None:
     if spec.progress == "none":
         return None
@@ -80,8 +91,8 @@ def _progress_callback(spec: TaskSpec) -> Callable[[float, str], None] | None:
             return
         last[0] = now
         if spec.progress == "json":
-            print(json.dumps({"event": "progress", "node": spec.node, "frames": list(spec.out_frames),
-                              "fraction": round(fraction, 4), "message": message}), file=sys.stderr, flush=True)
+            emit_json({"event": "progress", "node": spec.node, "frames": list(spec.out_frames),
+                       "fraction": round(fraction, 4), "message": message})
         else:
             print(f"  {spec.node} [{spec.out_frames[0]}:{spec.out_frames[1]}] {100 * fraction:5.1f}% {message}",
                   file=sys.stderr, flush=True)
@@ -259,7 +270,7 @@ class _Reporter:
             self.emit({"event": "start", "tasks": len(names), "nodes": self.totals})
 
     def emit(self, event: dict[str, Any]) -> None:
-        print(json.dumps(event), file=sys.stderr, flush=True)
+        emit_json(event)
 
     def update(self, meta: Mapping[str, Any]) -> None:
         with self.lock:
@@ -478,8 +489,8 @@ class _warnings_as_events:
 
 def _json_warning(message: Any, category: type, filename: str, lineno: int, file: Any = None,
                   line: str | None = None) -> None:
-    print(json.dumps({"event": "warning", "category": category.__name__, "message": str(message),
-                      "where": f"{os.path.basename(filename)}:{lineno}"}), file=sys.stderr, flush=True)
+    emit_json({"event": "warning", "category": category.__name__, "message": str(message),
+               "where": f"{os.path.basename(filename)}:{lineno}"})
 
 
 def _record(plan: Plan, metas: list[dict[str, Any]], store: Cache | None) -> None:

@@ -684,10 +684,10 @@ class SaveCamera(Node):
     type_name = "io.SaveCamera"
     version = 1
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        path: str = Param(..., description="Destination .json, .yaml or .yml file.")
+        path: str = Param(..., output_file=True, description="Destination .json, .yaml or .yml file.")
         units: Literal["mm", "cm", "m"] = Param("cm", description="Unit of the written "
                                                 "translation (stated in the file).")
 
@@ -705,10 +705,10 @@ class SaveCameraRig(Node):
     type_name = "io.SaveCameraRig"
     version = 1
     kind = SEQUENCE
-    cacheable = False
+    writes_files = True
 
     class Params(NodeParams):
-        path: str = Param(..., description="Destination .json file.")
+        path: str = Param(..., output_file=True, description="Destination .json file.")
 
     rig = In(CameraRig, doc="The rig to write.")
     files = Out(Files, doc="The written file and its sha256.")
