@@ -45,11 +45,11 @@ def _is_video(path: str) -> bool:
 def _network_images(images: ImageSequence, where: str = "images") -> np.ndarray:
     """(F, H, W, 3) sRGB-encoded RGB in [0, 1] for the networks (grey is replicated)."""
     idx = images.colour_channels()
-    if len(idx) not in (1, 3) and len(idx) < 3:
+    if not idx:
         raise InputError(where, f"expected RGB or grey images, found channels {images.channels}")
     srgb = images.to_srgb().pixels
     pixels = srgb[..., idx[:3]] if len(idx) >= 3 else np.repeat(srgb[..., idx[:1]], 3, -1)
-    return np.clip(pixels, 0.0, 1.0).astype(np.float32)
+    return np.ascontiguousarray(np.clip(pixels, 0.0, 1.0), dtype=np.float32)
 
 
 class LoadFrames(Node):
@@ -259,7 +259,7 @@ def draw_overlay(pixels: np.ndarray, box: np.ndarray | None, point_sets: list[tu
     Returns:
         (H, W, 3) a drawn copy.
     """
-    out = np.array(pixels, np.float32)
+    out = np.array(pixels, np.float32, order="C")
     h, w = out.shape[:2]
     if box is not None and np.isfinite(box).all():
         x0, y0, x1, y1 = np.round(box).astype(int)
