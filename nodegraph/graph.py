@@ -24,16 +24,19 @@ except by `nodegraph upgrade`.
 
 from __future__ import annotations
 
+import bisect
 import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Iterator, Literal, NamedTuple
+from typing import TYPE_CHECKING, Annotated, Any, Iterator, Literal, NamedTuple
 
-import networkx as nx
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from . import registry
+
+if TYPE_CHECKING:
+    import networkx as nx
 from .errors import GraphError, GraphIssue
 from .files import write_text_atomic
 from .node import Node, _number_problem, format_validation_error, path_params
@@ -294,22 +297,86 @@ class Graph:
         """(output port, destination input) pairs leaving `node_id`."""
         return [(src.port, dst) for src, dst in self.edges if src.node == node_id]
 
-    def to_networkx(self) -> nx.DiGraph:
+    def to_networkx(self) -> "nx.DiGraph":
+        """The node-level graph as a networkx DiGraph (for analysis and drawing)."""
+        
         g = nx.DiGraph()
         g.add_nodes_from(self.nodes)
         for src, dst in self.edges:
             g.add_edge(src.node, dst.node)
         return g
 
+    def _successors(self) -> dict[str, list[str]]:
+        succ: dict[str, list[str]] = {nid: [] for nid in self.nodes}
+        for src, dst in self.edges:
+            if src.node in succ and dst.node in succ and dst.node not in succ[src.node]:
+                succ[src.node].append(dst.node)
+        return succ
+
     def topological_order(self) -> list[str]:
-        return list(nx.lexicographical_topological_sort(self.to_networkx()))
+        """Node ids, each after everything it consumes; ties broken by id (deterministic).
+
+        Raises:
+            GraphError: the graph has a cycle.
+        """
+        succ = self._successors()
+        indegree = {nid: 0 for nid in self.nodes}
+        for targets in succ.values():
+            for nid in targets:
+                indegree[nid] += 1
+        ready = sorted(nid for nid, d in indegree.items() if d == 0)
+        order: list[str] = []
+        while ready:
+            nid = ready.pop(0)
+            order.append(nid)
+            for nxt in succ[nid]:
+                indegree[nxt] -= 1
+                if indegree[nxt] == 0:
+                    bisect.insort(ready, nxt)
+        if len(order) != len(self.nodes):
+            cycle = self._find_cycle() or []
+            raise GraphError([GraphIssue(cycle[0] if cycle else "", "", "cycle: " + " -> ".join(cycle))])
+        return order
+
+    def _find_cycle(self) -> list[str] | None:
+        """A cycle as [a, b, ..., a], or None."""
+        succ = self._successors()
+        state: dict[str, int] = {}  # 1 = on the stack, 2 = done
+        for root in sorted(self.nodes):
+            if state.get(root):
+                continue
+            stack: list[tuple[str, Iterator[str]]] = [(root, iter(succ[root]))]
+            path = [root]
+            state[root] = 1
+            while stack:
+                nid, children = stack[-1]
+                child = next(children, None)
+                if child is None:
+                    stack.pop()
+                    path.pop()
+                    state[nid] = 2
+                elif state.get(child) == 1:
+                    return path[path.index(child):] + [child]
+                elif not state.get(child):
+                    state[child] = 1
+                    path.append(child)
+                    stack.append((child, iter(succ[child])))
+        return None
 
     def descendants(self, node_id: str) -> set[str]:
-        return set(nx.descendants(self.to_networkx(), node_id))
+        succ = self._successors()
+        seen: set[str] = set()
+        stack = list(succ.get(node_id, []))
+        while stack:
+            nid = stack.pop()
+            if nid not in seen:
+                seen.add(nid)
+                stack.extend(succ[nid])
+        return seen
 
     def sinks(self) -> list[str]:
-        g = self.to_networkx()
-        return [n for n in self.nodes if g.out_degree(n) == 0]
+        succ = self._successors()
+        return [n for n in self.nodes if not succ[n]]
 
     # -- validation ----------------------------------------------------------------------
     def validate(self) -> list[GraphIssue]:
@@ -337,12 +404,9 @@ class Graph:
                 if not port.optional and name not in connected:
                     issues.append(GraphIssue(node_id, name, f"required input ({port.type.type_name}) "
                                              "is not connected"))
-        try:
-            cycle = nx.find_cycle(self.to_networkx())
-            path = " -> ".join([a for a, _ in cycle] + [cycle[0][0]])
-            issues.append(GraphIssue(cycle[0][0], "", f"cycle: {path}"))
-        except nx.NetworkXNoCycle:
-            pass
+        cycle = self._find_cycle()
+        if cycle:
+            issues.append(GraphIssue(cycle[0], "", f"cycle: {' -> '.join(cycle)}"))
         for name, gp in self.parameters.items():
             node_id, _, param = gp.target.rpartition(".")
             if node_id not in self.nodes:

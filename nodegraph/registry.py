@@ -10,6 +10,12 @@ A third-party package adds nodes by declaring, in its own pyproject.toml::
 
 Modules listed in the environment variable `NODEGRAPH_PLUGINS` (comma-separated) are
 imported too: a quick way to try nodes that are not packaged yet.
+
+A plugin package may list its areas in `NODEGRAPH_AREAS` (submodule names, each holding the
+node types whose names start with "<area>."), instead of importing them all in its
+`__init__`: the registry then imports an area only when one of its types is asked for (so a
+graph of three areas does not pay for the import of ten), and every area for `all_types()`
+or an unknown name.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ ENTRY_POINT_GROUP = "nodegraph.nodes"
 
 _TYPES: dict[str, type["Node"]] = {}
 _PLUGINS_LOADED = False
+_LAZY_AREAS: dict[str, list[str]] = {}  # area name -> plugin packages that have such a submodule
 
 
 def register(cls: type["Node"]) -> type["Node"]:
@@ -48,10 +55,24 @@ def load_plugins() -> None:
     if _PLUGINS_LOADED:
         return
     _PLUGINS_LOADED = True
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        ep.load()
-    for module in filter(None, (m.strip() for m in os.environ.get("NODEGRAPH_PLUGINS", "").split(","))):
-        import_module(module)
+    modules = [ep.load() for ep in entry_points(group=ENTRY_POINT_GROUP)]
+    for name in filter(None, (m.strip() for m in os.environ.get("NODEGRAPH_PLUGINS", "").split(","))):
+        modules.append(import_module(name))
+    for module in modules:
+        for area in getattr(module, "NODEGRAPH_AREAS", None) or []:
+            _LAZY_AREAS.setdefault(area, []).append(module.__name__)
+
+
+def _import_areas(areas: list[str]) -> None:
+    for area in areas:
+        for package in _LAZY_AREAS.pop(area, []):
+            try:
+                import_module(f"{package}.{area}")
+            except ModuleNotFoundError as err:
+                if err.name != f"{package}.{area}":
+                    raise
+                raise ImportError(f"{package}: NODEGRAPH_AREAS lists '{area}', but there is no module "
+                                  f"'{package}.{area}'", name=f"{package}.{area}") from err
 
 
 def get(name: str) -> type["Node"]:
@@ -62,6 +83,9 @@ def get(name: str) -> type["Node"]:
     """
     if name not in _TYPES:
         load_plugins()
+        _import_areas([name.partition(".")[0]])
+    if name not in _TYPES:
+        _import_areas(list(_LAZY_AREAS))  # all of them, for the error's close matches
     try:
         return _TYPES[name]
     except KeyError:
@@ -73,4 +97,5 @@ def get(name: str) -> type["Node"]:
 def all_types() -> dict[str, type["Node"]]:
     """Every registered node type by name, plugins included."""
     load_plugins()
+    _import_areas(list(_LAZY_AREAS))
     return dict(sorted(_TYPES.items()))

@@ -49,6 +49,7 @@ def test_import_nodes_imports_no_heavy_library():
     got = _run_python(
         "import json, sys\n"
         "import nodes\n"
+        "nodes.import_all()\n"
         f"print(json.dumps(sorted(m for m in {HEAVY!r} if m in sys.modules)))")
     assert got == [], f"`import nodes` imported {got}; import them inside run() instead"
 
@@ -63,6 +64,16 @@ def test_registry_lists_every_node_type_without_heavy_imports():
     assert len(declared) >= 20
     assert declared <= set(got["names"]), f"not registered: {sorted(declared - set(got['names']))}"
     assert got["heavy"] == []
+
+
+def test_registry_imports_only_the_areas_a_graph_uses():
+    got = _run_python(
+        "import json, sys\n"
+        "from nodegraph import Graph\n"
+        "Graph.load('graphs/synthetic_capture.json')\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.count('.') == 1 and m.startswith('nodes.'))))")
+    assert {"nodes.io", "nodes.synth", "nodes.report"} <= set(got)
+    assert "nodes.stabilize" not in got and "nodes.rigid" not in got
 
 
 def test_import_modules_names_a_missing_module():
