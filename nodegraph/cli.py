@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import json
+import os
 import sys
 import traceback
 from pathlib import Path
@@ -205,7 +206,7 @@ def _cmd_nodes(args: argparse.Namespace) -> int:
     print((cls.__doc__ or "").strip())
     print("\ninputs:")
     for name, port in cls.inputs.items():
-        flags = ", ".join(f for f in ["optional" if port.optional else "",
+        flags = ", ".join(f for f in ["optional" if port.optional else "", "list" if port.many else "",
                                       "whole" if port.type.per_frame and not port.per_frame else ""] if f)
         print(f"  {name}: {port.type.type_name}{f' ({flags})' if flags else ''}  {port.doc}".rstrip())
     print("outputs:")
@@ -226,9 +227,10 @@ def _cmd_show(args: argparse.Namespace) -> int:
     for node_id in graph.topological_order():
         spec = graph.nodes[node_id]
         cls = graph.node_class(node_id)
-        print(f"  {node_id} [{spec.type} v{spec.type_version}, {cls.kind}]")
-        for port, src in graph.upstream(node_id).items():
-            print(f"      {port} <- {src}")
+        extra = "".join(f", {k} {v}" for k, v in (("chunk", spec.chunk), ("device", spec.device)) if v)
+        print(f"  {node_id} [{spec.type} v{spec.type_version}, {cls.kind}{extra}]")
+        for port, sources in graph.upstream_lists(node_id).items():
+            print(f"      {port} <- {', '.join(map(str, sources))}")
         for key, value in spec.params.items():
             print(f"      {key} = {json.dumps(value)}")
     if graph.parameters:
@@ -374,6 +376,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("nodegraph: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. `nodegraph nodes | head`: the reader left, nothing is wrong
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Exception:  # a bug in nodegraph or a node: say so, with the traceback
         print("nodegraph: unexpected error (a bug; please report it with this traceback):", file=sys.stderr)
         traceback.print_exc()
