@@ -33,7 +33,11 @@ if TYPE_CHECKING:
     from .types import TorchModel
 
 __all__ = ["register_architecture", "architectures", "get_architecture", "build_model",
-           "save_model", "load_model"]
+           "save_model", "load_model", "save_model_safetensors", "load_model_safetensors",
+           "SAFETENSORS_FORMAT"]
+
+SAFETENSORS_FORMAT = "nodegraph.TorchModel/1"
+"""The `format` metadata entry of a TorchModel written by `save_model_safetensors`."""
 
 Builder = Callable[[dict[str, Any]], Any]
 
@@ -143,8 +147,14 @@ def build_model(model: "TorchModel", device: str = "cpu") -> Any:
 
 
 def save_model(model: "TorchModel", path: str | os.PathLike) -> None:
-    """Write `model` to `path` (.npz) through a temp file in the same folder and a rename."""
+    """Write `model` to `path` (.npz) through a temp file in the same folder and a rename.
+
+    A path ending in `.safetensors` is written by `save_model_safetensors` instead.
+    """
     path = Path(path)
+    if path.suffix.lower() == ".safetensors":
+        save_model_safetensors(model, path)
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"__port_type__": np.array(type(model).type_name), **model.to_arrays()}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -166,6 +176,8 @@ def load_model(path: str | os.PathLike) -> "TorchModel":
     """
     from .types import TorchModel
 
+    if Path(path).suffix.lower() == ".safetensors":
+        return load_model_safetensors(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: np.array(data[key]) for key in data.files}
@@ -182,4 +194,77 @@ def load_model(path: str | os.PathLike) -> "TorchModel":
         raise ValueError(f"{os.fspath(path)}: expected the arrays of a TorchModel, found keys "
                          f"{sorted(arrays)} ({err})") from err
     model.validate(os.fspath(path))
+    return model
+
+
+def _json_array(array: np.ndarray) -> dict[str, Any]:
+    """An array as exact JSON: dtype, shape and the values as Python numbers."""
+    return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.reshape(-1).tolist()}
+
+
+def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None:
+    """Write `model` as a `.safetensors` file (atomically: temp file in the folder, rename).
+
+    Tensors: the weights, under their state keys. Metadata (strings): `format`
+    (`SAFETENSORS_FORMAT`), `architecture`, `config` (JSON) and `normalization` (JSON: name ->
+    {dtype, shape, data}, exact for every dtype) plus one `normalization.NAME` entry per array
+    for readers that want a single one.
+    """
+    import json
+
+    from safetensors.numpy import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    norm = {key: _json_array(np.asarray(value)) for key, value in sorted(model.normalization.items())}
+    metadata = {"format": SAFETENSORS_FORMAT, "architecture": model.architecture,
+                "config": json.dumps(model.config, sort_keys=True),
+                "normalization": json.dumps(norm, sort_keys=True)}
+    for key, value in norm.items():
+        metadata[f"normalization.{key}"] = json.dumps(value)
+    tensors = {key: np.ascontiguousarray(value) for key, value in model.state.items()}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        save_file(tensors, tmp, metadata=metadata)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_model_safetensors(path: str | os.PathLike) -> "TorchModel":
+    """Read a model written by `save_model_safetensors` (weights and normalization bit-exact).
+
+    Raises:
+        ValueError: "FILE: ..." for an unreadable file, or one without the TorchModel metadata.
+    """
+    import json
+
+    from safetensors import safe_open
+
+    from .types import TorchModel
+
+    where = os.fspath(path)
+    try:
+        with safe_open(where, framework="np") as fh:
+            metadata = dict(fh.metadata() or {})
+            state = {key: np.array(fh.get_tensor(key)) for key in fh.keys()}
+    except Exception as err:  # safetensors raises its own error types for broken headers
+        raise ValueError(f"{where}: expected a TorchModel .safetensors file, found an unreadable "
+                         f"file ({type(err).__name__}: {err})") from err
+    if metadata.get("format") != SAFETENSORS_FORMAT:
+        raise ValueError(f"{where}: expected metadata 'format' = '{SAFETENSORS_FORMAT}', found "
+                         f"{metadata.get('format')!r}")
+    try:
+        config = json.loads(metadata["config"])
+        norm = {key: np.array(item["data"], dtype=np.dtype(item["dtype"])).reshape(item["shape"])
+                for key, item in json.loads(metadata["normalization"]).items()}
+        model = TorchModel(architecture=metadata["architecture"], config=config, state=state,
+                           normalization=norm)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{where}: expected metadata 'architecture', 'config' and "
+                         f"'normalization' of a TorchModel, found keys {sorted(metadata)} ({err})") from err
+    model.validate(where)
     return model

@@ -1,0 +1,62 @@
+"""Trained dynamics networks on disk: `.safetensors` files (weights as tensors; architecture,
+config, input normalization and sample vertex ids in the metadata), or `.npz`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, TorchModel
+from nodegraph.files import files_value
+from nodegraph.models import load_model, save_model
+
+__all__ = ["SaveModel", "LoadModel"]
+
+_SUFFIXES = (".safetensors", ".npz")
+
+
+def _check_suffix(path: str) -> None:
+    if Path(path).suffix.lower() not in _SUFFIXES:
+        raise InputError("path", f"expected a {' or '.join(_SUFFIXES)} file, found '{path}'")
+
+
+class SaveModel(Node):
+    """Write a trained network to a .safetensors (or .npz) file, atomically."""
+
+    type_name = "dynamics.SaveModel"
+    version = 1
+    kind = SEQUENCE
+    writes_files = True
+
+    class Params(NodeParams):
+        path: str = Param("out/dynamics_removal.safetensors", output_file=True,
+                          description="output .safetensors (or .npz) file")
+
+    model = In(TorchModel, doc="the network (dynamics.TrainRemoval / dynamics.TrainSynthesis)")
+    files = Out(Files, doc="the written file and its sha256")
+
+    def run(self, model: TorchModel) -> dict:
+        _check_suffix(self.params.path)
+        save_model(model, self.params.path)  # temp file in the same folder, then a rename
+        return {"files": files_value([self.params.path])}
+
+
+class LoadModel(Node):
+    """Read a trained network written by dynamics.SaveModel."""
+
+    type_name = "dynamics.LoadModel"
+    version = 1
+    kind = SEQUENCE
+
+    class Params(NodeParams):
+        path: str = Param(..., input_file=True, description=".safetensors (or .npz) model file")
+
+    model = Out(TorchModel, doc="the network")
+
+    def run(self) -> dict:
+        _check_suffix(self.params.path)
+        if not Path(self.params.path).is_file():
+            raise InputError("path", f"expected an existing model file, found no file '{self.params.path}'")
+        try:
+            return {"model": load_model(self.params.path)}
+        except ValueError as err:
+            raise InputError("path", str(err)) from err

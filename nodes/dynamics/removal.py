@@ -1,0 +1,236 @@
+"""Removal of secondary dynamics: the network F (Zoss et al. 2020, section 5) as nodes.
+
+`F(B(t), X_i(t)) -> dx_i(t)`: one MLP shared by all skin samples maps the head motion history
+and the stabilized velocity history of sample i to its dynamic offset in the skull frame.
+`dynamics.TrainRemoval` fits it (Adam, L2) on captures with known targets (the paper's moving
+average, or the true quasistatic sequence of a synthetic capture); `dynamics.RemoveDynamics`
+predicts the sample offsets of any capture of the same topology, propagates them to every
+vertex (see `propagate.py`) and returns `y = x - T(t) D(t)`.
+
+The model (`TorchModel`, architecture "dynamics.MLP") carries what applying it needs:
+config `kind` = "removal", `window`, `feature_fps`, `num_vertices`; normalization
+`input_mean`, `input_std`, `output_mean`, `output_std`, `sample_ids` (N,), `skull_landmarks`
+(5, 3) cm, `rest_vertices` (V, 3) cm (the training rest shape, for the neighbour graph of
+point sets).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal
+
+import numpy as np
+
+from nodegraph import (SEQUENCE, In, InputError, JsonValue, MeshSequence, Node, NodeParams, Out,
+                       Param, ParamSequence, RigidSequence, TorchModel, windowed)
+
+from ..synth.dynamics import vertex_neighbours
+from .features import (dynamic_offsets, moving_average_target, rotate_elementwise,
+                       segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
+                       skull_descriptor, skull_landmarks, stabilize_points, window_gather,
+                       window_reach)
+from .networks import predict, standardize_stats, train_mlp
+from .propagate import interpolation_matrix, propagate_offsets
+
+__all__ = ["HALO", "region_vertices", "check_model", "model_edges", "TrainRemoval", "RemoveDynamics"]
+
+HALO = 16
+"""Halo of the windowed dynamics nodes (frames): the window of w = 10 samples at the feature
+rate plus interpolation taps covers captures up to `feature_fps * 13 / 10` frames per second."""
+
+
+def region_vertices(mesh: MeshSequence, region: str, param: str = "region") -> np.ndarray:
+    """Vertex indices of group `region` ('' = all), or InputError naming the known groups."""
+    if not region:
+        return np.arange(mesh.num_vertices)
+    if region not in mesh.groups:
+        raise InputError(param, f"expected a vertex group '{region}' in the capture, found groups "
+                                f"{sorted(mesh.groups)} (use '' for all vertices)")
+    return np.asarray(mesh.groups[region], np.int64)
+
+
+def check_model(model: TorchModel, kind: str, mesh: MeshSequence, fps: float, port: str = "model") -> None:
+    """Check that `model` is a dynamics network of `kind` that fits `mesh` at `fps`."""
+    found = model.config.get("kind")
+    if model.architecture != "dynamics.MLP" or found != kind:
+        raise InputError(port, f"expected a dynamics.MLP {kind} network (dynamics.Train"
+                               f"{'Removal' if kind == 'removal' else 'Synthesis'}), found "
+                               f"architecture '{model.architecture}' kind {found!r}")
+    count = int(model.config["num_vertices"])
+    if mesh.num_vertices != count:
+        raise InputError(port, f"expected a capture of the training topology ({count} vertices), "
+                               f"found {mesh.num_vertices} vertices")
+    reach = window_reach(int(model.config["window"]), fps, float(model.config["feature_fps"]))
+    if reach > HALO:
+        top = (HALO - 3) * float(model.config["feature_fps"]) / int(model.config["window"])
+        raise InputError("fps", f"expected a frame rate up to {top:g} fps for this network "
+                                f"(window {model.config['window']} at {model.config['feature_fps']} "
+                                f"fps), found {fps:g}")
+
+
+def model_edges(mesh: MeshSequence, model: TorchModel) -> np.ndarray:
+    """Neighbour edges for propagation: the mesh's, else a kNN graph of the training rest shape."""
+    rest = model.normalization["rest_vertices"]
+    return vertex_neighbours(rest, mesh.faces)
+
+
+def _fps(param: float, mesh: MeshSequence) -> float:
+    return float(param) if param > 0 else float(mesh.fps)
+
+
+def _check_lists(**lists: list) -> int:
+    counts = {name: len(values) for name, values in lists.items() if values}
+    first = next(iter(counts.values()))
+    for name, count in counts.items():
+        if count != first:
+            raise InputError(name, f"expected {first} values (one per capture), found {count}")
+    return first
+
+
+class TrainRemoval(Node):
+    """Train the removal network F on captures with known quasistatic targets."""
+
+    type_name = "dynamics.TrainRemoval"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        target: Literal["moving_average", "truth"] = Param(
+            "truth", description="training target: 'moving_average' (the paper's eq. 5, held "
+                                 "expressions) or 'truth' (the connected quasistatic sequences)")
+        num_samples: int = Param(344, ge=1, description="skin samples (farthest-point sampling of the region)")
+        region: str = Param("", description="vertex group of the samples ('' = all vertices)")
+        window: int = Param(10, ge=1, description="half-size of the descriptor windows (samples)")
+        feature_fps: float = Param(120.0, gt=0, description="sample rate of the windows (1/s)")
+        target_window: int = Param(10, ge=1, description="half-size of the moving-average target (frames)")
+        hidden: list[int] = Param([128, 128], description="hidden layer widths")
+        epochs: int = Param(60, ge=1, description="passes over the training rows (paper: 250)")
+        batch_size: int = Param(10000, ge=1, description="rows per Adam step")
+        lr: float = Param(1e-3, gt=0, description="Adam learning rate")
+        max_rows: int = Param(200000, ge=1, description="(frame, sample) rows drawn for training")
+
+    captures = In(MeshSequence, many=True, doc="world-space dynamic captures (cm)")
+    skulls = In(RigidSequence, many=True, doc="skull-to-world transforms, one per capture")
+    quasistatic = In(MeshSequence, many=True, optional=True,
+                     doc="true world-space quasistatic sequences (for target 'truth')")
+    segments = In(ParamSequence, many=True, optional=True,
+                  doc="segment labels per frame; windows never straddle a change")
+    model = Out(TorchModel, doc="removal network F (dynamics.MLP)")
+    report = Out(JsonValue, doc="rows, epochs, seconds, losses")
+
+    def run(self, captures: list[MeshSequence], skulls: list[RigidSequence],
+            quasistatic: list[MeshSequence], segments: list[ParamSequence]) -> dict:
+        p = self.params
+        count = _check_lists(captures=captures, skulls=skulls, quasistatic=quasistatic, segments=segments)
+        if p.target == "truth" and not quasistatic:
+            raise InputError("quasistatic", "expected one quasistatic sequence per capture for "
+                                            "target 'truth', found none connected")
+        first = captures[0]
+        for i, c in enumerate(captures):
+            if c.num_vertices != first.num_vertices:
+                raise InputError("captures", f"expected every capture to have {first.num_vertices} "
+                                             f"vertices (as capture 0), capture {i} has {c.num_vertices}")
+        rest = stabilize_points(first.vertices[:1], skulls[0].matrices[:1])[0]
+        samples = select_samples(rest, p.num_samples, region_vertices(first, p.region))
+        landmarks = skull_landmarks(rest)
+        rng = np.random.default_rng(self.seed)
+        inputs, targets = [], []
+        valid_frames = []
+        for i in range(count):
+            fps = float(captures[i].fps)
+            reach = window_reach(p.window, fps, p.feature_fps)
+            margin = max(reach, p.target_window if p.target == "moving_average" else 0)
+            labels = segments[i].values[:, 0] if segments else None
+            ok = segment_margin_mask(labels, captures[i].num_frames, margin)
+            ok[:margin] = ok[-margin:] = False
+            valid_frames.append(np.flatnonzero(ok))
+        total = sum(len(v) for v in valid_frames) * len(samples)
+        if total == 0:
+            raise InputError("captures", "expected frames away from segment changes and ends, found none")
+        for i in range(count):
+            frames = valid_frames[i]
+            quota = int(round(p.max_rows * len(frames) * len(samples) / total))
+            if quota == 0 or not len(frames):
+                continue
+            pick = rng.choice(len(frames) * len(samples), min(quota, len(frames) * len(samples)),
+                              replace=False)
+            rows_f, rows_s = frames[pick // len(samples)], pick % len(samples)
+            fps, skull = float(captures[i].fps), skulls[i].matrices
+            x = captures[i].vertices[:, samples]
+            y = (quasistatic[i].vertices[:, samples] if p.target == "truth"
+                 else moving_average_target(x, skull, window=p.target_window))
+            offsets = dynamic_offsets(x, y, skull)  # (F, N, 3)
+            b = skull_descriptor(skull, landmarks, fps, window=p.window, feature_fps=p.feature_fps)
+            vel = skin_velocity(x, skull, fps)
+            skin = window_gather(vel, rows_f, p.window, fps, p.feature_fps, columns=rows_s)
+            inputs.append(np.concatenate([b[rows_f], skin.reshape(len(rows_f), -1).astype(np.float32)], 1))
+            targets.append(offsets[rows_f, rows_s].astype(np.float32))
+            self.progress(0.1 * (i + 1) / count, f"features of capture {i + 1}/{count}")
+        x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
+        in_mean, in_std = standardize_stats(x_all)
+        out_mean, out_std = standardize_stats(y_all)
+        result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std,
+                           hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
+                           seed=self.seed % (2 ** 63), device=self.device,
+                           progress=lambda f, m: self.progress(0.1 + 0.9 * f, m))
+        config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden), "out_features": 3,
+                  "kind": "removal", "window": p.window, "feature_fps": p.feature_fps,
+                  "num_vertices": first.num_vertices, "target": p.target}
+        norm = {"input_mean": in_mean, "input_std": in_std, "output_mean": out_mean,
+                "output_std": out_std, "sample_ids": samples.astype(np.int64),
+                "skull_landmarks": landmarks, "rest_vertices": rest.astype(np.float32)}
+        model = TorchModel.from_module("dynamics.MLP", config, result.module, norm)
+        report = {"rows": int(len(x_all)), "epochs": p.epochs, "seconds": round(result.seconds, 3),
+                  "final_loss": result.losses[-1], "losses": [round(v, 6) for v in result.losses]}
+        return {"model": model, "report": JsonValue(report)}
+
+
+def predict_removal(model: TorchModel, vertices: np.ndarray, skull: np.ndarray, fps: float) -> np.ndarray:
+    """Sample offsets dx_i(t) (F, N, 3) float64, cm, skull frame, predicted frame by frame."""
+    cfg, norm = model.config, model.normalization
+    ids = norm["sample_ids"]
+    window, ffps = int(cfg["window"]), float(cfg["feature_fps"])
+    b = skull_descriptor(skull, norm["skull_landmarks"], fps, window=window, feature_fps=ffps)
+    x = skin_descriptor(vertices[:, ids], skull, fps, window=window, feature_fps=ffps)
+    net = model.build("cpu")
+    out = np.empty((len(b), len(ids), 3))
+    mean, std = norm["input_mean"], norm["input_std"]
+    for f in range(len(b)):  # one call per frame: the same shapes whatever the chunk
+        rows = np.concatenate([np.broadcast_to(b[f], (len(ids), b.shape[1])), x[f]], axis=1)
+        out[f] = predict(net, (rows - mean) / std) * norm["output_std"] + norm["output_mean"]
+    return out
+
+
+class RemoveDynamics(Node):
+    """Remove secondary dynamics from a capture with a trained removal network F."""
+
+    type_name = "dynamics.RemoveDynamics"
+    version = 1
+    kind = windowed(HALO)
+
+    class Params(NodeParams):
+        fps: float = Param(0.0, ge=0, description="frame rate of the capture (1/s); 0 = the mesh's fps")
+        constraint_weight: float = Param(100.0, gt=0, description="weight of the sample offsets "
+                                                                  "against smoothness in propagation")
+
+    capture = In(MeshSequence, doc="world-space capture with dynamics (cm), training topology")
+    skull = In(RigidSequence, doc="skull-to-world transforms")
+    model = In(TorchModel, doc="removal network F (dynamics.TrainRemoval / dynamics.LoadModel)")
+    quasistatic = Out(MeshSequence, doc="world-space capture without secondary dynamics (cm)")
+    offsets = Out(MeshSequence, doc="removed dynamic offsets per vertex, skull frame (cm)")
+
+    def run(self, capture: MeshSequence, skull: RigidSequence, model: TorchModel) -> dict:
+        fps = _fps(self.params.fps, capture)
+        check_model(model, "removal", capture, fps)
+        if capture.num_frames < 2:
+            raise InputError("capture", f"expected at least 2 frames, found {capture.num_frames}")
+        ids = model.normalization["sample_ids"]
+        sample = predict_removal(model, capture.vertices, skull.matrices, fps)
+        weights = interpolation_matrix(model_edges(capture, model), capture.num_vertices, ids,
+                                       constraint_weight=self.params.constraint_weight)
+        full = propagate_offsets(weights, sample)  # (F, V, 3), skull frame
+        world = rotate_elementwise(skull.matrices[:, :3, :3], full)
+        quasi = (capture.vertices.astype(np.float64) - world).astype(np.float32)
+        return {"quasistatic": dataclasses.replace(capture, vertices=quasi, fps=fps),
+                "offsets": dataclasses.replace(capture, vertices=full.astype(np.float32), fps=fps)}
