@@ -252,3 +252,19 @@ def test_old_report_graph_with_estimate_ports_migrates(tmp_path):
     g = Graph.from_json(data)
     assert [str(s) for s in g.upstream_lists("report")["estimates"]] == ["init.rigid", "stab.rigid"]
     assert g.migrations
+
+
+def test_report_html_shows_graph_timings_and_failures(tmp_path, cache_dir, capsys):
+    g = Graph()
+    g.add("test.Ramp", id="ramp", num_frames=10)
+    g.add("test.Fail", id="fail", frames=[3])
+    g.add("test.Scale", id="scale")
+    g.connect("ramp.values", "fail.values")
+    g.connect("ramp.values", "scale.values")
+    path = tmp_path / "g.json"
+    g.save(path)
+    page = tmp_path / "run.html"
+    assert main(["run", str(path), "--cache", str(cache_dir), "--progress", "none", "--report-html", str(page)]) == 1
+    text = page.read_text()
+    assert "<svg" in text and "deliberate failure at frame 3" in text and "Traceback" in text
+    assert ">scale<" in text and ">ramp<" in text and "http" not in text.replace('xmlns="http://www.w3.org/2000/svg"', "")
