@@ -342,18 +342,23 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     rem = idx % (hs * ws)
     centres = torch.stack([rem % ws, rem // ws], -1).to(dt)
     corner_ids = faces_t[flat_tri[idx]]  # (N, 3)
-    corners = pix[batch[:, None], corner_ids]  # (N, 3, 2)
+    flat_corner = (batch[:, None] * nv + corner_ids).reshape(-1)  # rows of (B * V, ...) tensors
+    corners = pix.reshape(-1, 2).index_select(0, flat_corner).reshape(-1, 3, 2)
     lam = screen_barycentrics(corners, centres)
-    mu = lam / depth_v[batch[:, None], corner_ids]
+    mu = lam / depth_v.reshape(-1).index_select(0, flat_corner).reshape(-1, 3)
     inv_z = mu.sum(-1)
     mu = mu / inv_z[:, None]
 
     normals = vertex_normals(vertices, faces_t)
-    attrs = torch.cat([albedo.expand(bsz, nv, 3), normals], -1)  # (B, V, 6)
-    values = (mu[..., None] * attrs[batch[:, None], corner_ids]).sum(1)  # (N, 6)
+    attrs = torch.cat([albedo.expand(bsz, nv, 3), normals], -1).reshape(bsz * nv, 6)
+    values = torch.bmm(mu[:, None, :], attrs.index_select(0, flat_corner).reshape(-1, 3, 6))[:, 0]  # (N, 6)
     n = values[:, 3:6]
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    irradiance = (sh_basis(n)[:, :, None] * sh.expand(bsz, 9, 3)[batch]).sum(1)  # (N, 3)
+    basis = sh_basis(n)  # (N, 9)
+    if sh.shape[0] == 1:
+        irradiance = basis @ sh[0]
+    else:
+        irradiance = torch.bmm(basis[:, None, :], sh.index_select(0, batch))[:, 0]
     shaded = values[:, :3] * irradiance
 
     npix = bsz * hs * ws
