@@ -142,7 +142,9 @@ def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,
         raise ValueError("curves: expected at least one label -> (F, 4, 4) matrices, found none")
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(12, 6), layout="constrained")
+    # Fixed margins (no constrained layout: its solver was most of the report's time).
+    fig = Figure(figsize=(12, 6))
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.88, wspace=0.22, hspace=0.3)
     axes = fig.subplots(2, 3, sharex=True)
     for label, matrices in curves.items():
         try:
@@ -161,13 +163,13 @@ def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,
         top.set_xlabel("s")
         for row in range(2):
             axes[row, c].grid(alpha=0.3)
-    axes[0, 0].legend(loc="best", fontsize="small")
+    axes[0, 0].legend(loc="upper right", fontsize="small")  # "best" searches overlaps: slow
     return save_figure(fig, path)
 
 
 def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str, np.ndarray],
                              path: str | os.PathLike, vertices: Sequence[int] | None = None,
-                             bins: int = 60) -> Path:
+                             bins: int = 60, vertex_labels: Sequence[int] | None = None) -> Path:
     """Histograms over time of a few vertices' positions, world vs skull frame (paper Fig. 5).
 
     One row per vertex, one column per coordinate; each panel overlays the mean-removed
@@ -180,6 +182,8 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
         path: PNG file to write.
         vertices: vertex indices; None = `default_vertices(V)` (4 evenly spaced).
         bins: histogram bins per panel.
+        vertex_labels: the vertex numbers shown in the titles, one per shown vertex (e.g. the
+            original indices when `world` holds only a subset); None = the indices.
     Returns:
         The written path.
     """
@@ -188,8 +192,12 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
     ids = default_vertices(world.shape[1]) if vertices is None else np.asarray(vertices, np.int64)
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(12, 2.6 * max(len(ids), 1)), layout="constrained")
-    axes = np.atleast_2d(fig.subplots(max(len(ids), 1), 3, squeeze=False))
+    rows = max(len(ids), 1)
+    fig = Figure(figsize=(12, 2.6 * rows))
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.3 / rows, top=1.0 - 0.25 / rows,
+                        wspace=0.2, hspace=0.45)
+    axes = np.atleast_2d(fig.subplots(rows, 3, squeeze=False))
+    names = ids if vertex_labels is None else np.asarray(vertex_labels, np.int64)
     for row, vertex in enumerate(ids):
         for c in range(3):
             ax = axes[row, c]
@@ -202,8 +210,8 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
                 ax.hist(s, bins=edges, histtype="stepfilled" if k == "world" else "step",
                         color="0.7" if k == "world" else None, linewidth=1.2,
                         label=f"{k} (MAD {mad:.3f} cm)")
-            ax.set_title(f"vertex {int(vertex)}, {_AXES[c]} - mean (cm)", fontsize="small")
-            ax.legend(fontsize="x-small")
+            ax.set_title(f"vertex {int(names[row])}, {_AXES[c]} - mean (cm)", fontsize="small")
+            ax.legend(loc="upper right", fontsize="x-small")
     axes[-1, 0].set_ylabel("frames")
     return save_figure(fig, path)
 
@@ -234,10 +242,12 @@ class CaptureReport(Node):
         if vertices is not None and (min(vertices) < 0 or max(vertices) >= v):
             raise InputError("vertices", f"expected indices in 0..{v - 1}, found {vertices}")
         folder = Path(self.params.folder)
-        skull = stabilize_vertices(capture.vertices, rigid.matrices)
+        ids = default_vertices(v) if vertices is None else np.asarray(vertices, np.int64)
+        world = np.ascontiguousarray(capture.vertices[:, ids])  # only the vertices shown
+        skull = stabilize_vertices(world, rigid.matrices)
         self.progress(0.1, "head motion")
         paths = [plot_head_motion({"rigid": rigid.matrices}, folder / "head_motion.png", capture.fps)]
         self.progress(0.5, "histograms")
-        paths.append(plot_position_histograms(capture.vertices, {"skull": skull},
-                                              folder / "histograms.png", vertices))
+        paths.append(plot_position_histograms(world, {"skull": skull}, folder / "histograms.png",
+                                              np.arange(len(ids)), vertex_labels=ids))
         return {"files": files_value(paths)}
