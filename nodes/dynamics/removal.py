@@ -105,7 +105,7 @@ class TrainRemoval(Node):
         feature_fps: float = Param(120.0, gt=0, description="sample rate of the windows (1/s)")
         target_window: int = Param(10, ge=1, description="half-size of the moving-average target (frames)")
         hidden: list[int] = Param([128, 128], description="hidden layer widths")
-        epochs: int = Param(60, ge=1, description="passes over the training rows (paper: 250)")
+        epochs: int = Param(40, ge=1, description="passes over the training rows (paper: 250)")
         batch_size: int = Param(10000, ge=1, description="rows per Adam step")
         lr: float = Param(1e-3, gt=0, description="Adam learning rate")
         max_rows: int = Param(200000, ge=1, description="(frame, sample) rows drawn for training")

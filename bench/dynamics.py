@@ -1,0 +1,113 @@
+"""Secondary dynamics: the paper's Fig. 5 protocol, resynthesis residual, training time, throughput.
+
+Run: nice python bench/dynamics.py [--max-vertices 1500] [--epochs 20] [--rows 100000]
+
+Fig. 5 protocol (Zoss et al. 2020, section 5.3): the vibrating platform at 6, 7, 8, 9, 10 and
+11 Hz, held expressions; removal network F trained on the k slowest frequencies (k = 1..5) and
+tested on the fastest one (11 Hz, neutral expression, never seen in training). The test capture
+is another identity (seed) at another frame rate (110 fps; training 96 and 128 fps). Printed per
+setting: RMS distance to the true quasistatic sequence at the samples and over the whole face
+(mm), the reduction against doing nothing (%), training time (s) and apply throughput of
+`dynamics.RemoveDynamics` (frames/s, propagation included, one chunk).
+
+Resynthesis: H trained on still/walk/run/jump/oscillation (9 Hz held out) with held expressions
+and speech; tested on the 9 Hz platform and on a walk of another seed: residual RMS against the
+true dynamic capture, as % of the true dynamic offset RMS.
+
+CPU only (torch on the CPU; no GPU on this machine): times are for the 2-core machine shared
+with other jobs, so treat them as upper bounds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from nodegraph import run_node
+from nodes.dynamics.evaluate import rms_distance
+from nodes.dynamics.features import dynamic_offsets
+from nodes.dynamics.removal import RemoveDynamics, TrainRemoval, predict_removal
+from nodes.dynamics.synthesis import SynthesizeDynamics, TrainSynthesis
+from nodes.io.face_model import load_face_model
+from nodes.synth.dynamics import simulate_dynamics
+
+FREQUENCIES = [6, 7, 8, 9, 10, 11]
+HELD = ["neutral", "smile", "jaw_open", "pucker"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--max-vertices", type=int, default=1500, help="face region subsample (0 = all 9,409)")
+    parser.add_argument("--samples", type=int, default=344)
+    parser.add_argument("--epochs", type=int, default=20)
+    parser.add_argument("--rows", type=int, default=100000)
+    parser.add_argument("--segment-frames", type=int, default=128)
+    parser.add_argument("--synthesis-epochs", type=int, default=30)
+    args = parser.parse_args()
+    face = load_face_model(region="face", max_vertices=args.max_vertices)
+    v = face.neutral.shape[0]
+    print(f"face region: {v} vertices; {args.samples} samples; F: {args.rows} rows x {args.epochs} "
+          f"epochs, batch 10,000, Adam 1e-3; CPU only (no GPU)")
+    test = simulate_dynamics(face, motions=["oscillate@11"], expressions=["neutral"], segment_frames=220,
+                             fps=110.0, seed=9)
+    base = rms_distance(test.capture.vertices, test.quasistatic.vertices)
+    print(f"test: 11 Hz, neutral, seed 9, 110 fps, {test.capture.num_frames} frames; doing nothing: "
+          f"{10 * base:.3f} mm RMS over the face")
+    print()
+    print("trained on     | rows   | train s | samples mm | face mm | reduction | apply frames/s")
+    print("---------------|--------|---------|------------|---------|-----------|---------------")
+    for k in range(1, 6):
+        programs = [f"oscillate@{f}" for f in FREQUENCIES[:k]]
+        parts = [simulate_dynamics(face, motions=programs, expressions=HELD, segment_frames=args.segment_frames,
+                                   fps=fps, seed=seed) for fps, seed in ((96.0, 1), (128.0, 2))]
+        start = time.perf_counter()
+        out = run_node(TrainRemoval, {"num_samples": args.samples, "epochs": args.epochs, "max_rows": args.rows},
+                       frames=range(parts[0].capture.num_frames),
+                       captures=[p.capture for p in parts], skulls=[p.skull for p in parts],
+                       quasistatic=[p.quasistatic for p in parts], segments=[p.segments for p in parts])
+        train_s = time.perf_counter() - start
+        model = out["model"]
+        ids = model.normalization["sample_ids"]
+        pred = predict_removal(model, test.capture.vertices, test.skull.matrices, 110.0)
+        true = dynamic_offsets(test.capture.vertices[:, ids], test.quasistatic.vertices[:, ids], test.skull.matrices)
+        sample_err = float(np.sqrt(((pred - true) ** 2).sum(-1).mean()))
+        start = time.perf_counter()
+        removed = run_node(RemoveDynamics, {}, capture=test.capture, skull=test.skull, model=model)
+        apply_s = time.perf_counter() - start
+        face_err = rms_distance(removed["quasistatic"].vertices, test.quasistatic.vertices)
+        label = ",".join(str(f) for f in FREQUENCIES[:k]) + " Hz"
+        print(f"{label:<14} | {out['report'].value['rows']:>6} | {train_s:7.1f} | {10 * sample_err:10.3f} | "
+              f"{10 * face_err:7.3f} | {100 * (1 - face_err / base):8.1f}% | {test.capture.num_frames / apply_s:13.1f}")
+
+    print()
+    corpus = simulate_dynamics(face, motions=["still", "walk", "run", "jump", "oscillate@6", "oscillate@8",
+                                              "oscillate@10", "oscillate@11"],
+                               expressions=["neutral", "smile", "jaw_open", "speech"],
+                               segment_frames=args.segment_frames, fps=120.0, seed=1)
+    start = time.perf_counter()
+    h = run_node(TrainSynthesis, {"num_samples": args.samples, "epochs": args.synthesis_epochs},
+                 frames=range(corpus.capture.num_frames), captures=[corpus.capture],
+                 quasistatic=[corpus.quasistatic], skulls=[corpus.skull], neutral=[corpus.neutral],
+                 segments=[corpus.segments])
+    train_s = time.perf_counter() - start
+    print(f"synthesis H: {h['report'].value['rows']} frames x {args.synthesis_epochs} epochs, batch 50: "
+          f"{train_s:.1f} s")
+    for name, kwargs in (("9 Hz platform, smile, 100 fps", dict(motions=["oscillate@9"], expressions=["smile"],
+                                                                 fps=100.0, seed=1)),
+                         ("walk, speech, 110 fps", dict(motions=["walk"], expressions=["speech"], fps=110.0,
+                                                        seed=1))):
+        held = simulate_dynamics(face, segment_frames=220, **kwargs)
+        start = time.perf_counter()
+        syn = run_node(SynthesizeDynamics, {}, quasistatic=held.quasistatic, skull=held.skull,
+                       neutral=held.neutral, model=h["model"])
+        apply_s = time.perf_counter() - start
+        dyn = rms_distance(held.capture.vertices, held.quasistatic.vertices)
+        res = rms_distance(syn["capture"].vertices, held.capture.vertices)
+        print(f"  resynthesis on {name}: dynamic RMS {10 * dyn:.3f} mm, residual {10 * res:.3f} mm "
+              f"({100 * res / dyn:.1f} %), {held.capture.num_frames / apply_s:.1f} frames/s")
+
+
+if __name__ == "__main__":
+    main()
