@@ -6,13 +6,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from nodegraph import SEQUENCE, Files, In, Index, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence, Table
 from nodegraph.files import files_value, write_text_atomic
 
 from ..geometry.rigid import stabilize_vertices
 from .metrics import StabilizationErrors, stabilization_errors
-from .plots import plot_head_motion, plot_position_histograms
+from .plots import default_vertices, plot_head_motion, plot_position_histograms
 
 __all__ = ["error_table", "StabilizationReport"]
 
@@ -105,7 +107,11 @@ class StabilizationReport(Node):
         self.progress(0.2, "errors measured")
         written.append(plot_head_motion(curves, folder / "head_motion.png", fps=capture.fps))
         self.progress(0.5, "head motion plotted")
-        skulls = {label: stabilize_vertices(capture.vertices, m) for label, m in curves.items()}
-        written.append(plot_position_histograms(capture.vertices, skulls, folder / "histograms.png", ids))
+        # Only the shown vertices are stabilized and histogrammed (not all F x V).
+        shown = default_vertices(capture.num_vertices) if ids is None else np.asarray(ids, np.int64)
+        world = capture.vertices[:, shown]
+        skulls = {label: stabilize_vertices(world, m) for label, m in curves.items()}
+        written.append(plot_position_histograms(world, skulls, folder / "histograms.png",
+                                                vertex_labels=shown))
         paths = [str(p) for p in written]
         return {"files": files_value(paths), "table": table}

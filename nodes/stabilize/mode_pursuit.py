@@ -147,8 +147,8 @@ class AdaptivePlan(NamedTuple):
         noise_cm: estimated tracking-noise std (cm), from second differences over frames of
             the robustly aligned vertices (`robust.noise_level`).
         init_width_cm: width of the last robust per-frame alignment round (cm).
-        position_widths: spline-stage position widths (cm), ending at `noise_multiple *
-            noise_cm` (not below `min_width`).
+        position_widths: spline-stage position widths (cm): `noise_multiple * noise_cm`, not
+            below `min_width`.
         velocity_widths: spline-stage velocity widths (cm / frame), a quarter of the position
             widths (the paper's ratio).
         spacing: control-point spacing of the spline (frames), `clip((F - 1) / 4, 1, 4)`.
@@ -171,10 +171,12 @@ def adaptive_plan(noise_cm: float, init_width_cm: float, num_frames: int, *,
                   velocity_weight: float = 1.0) -> AdaptivePlan:
     """Choose the spline stages from the data: widths from the noise, spacing from the length.
 
-    The final width is `w_end = max(noise_multiple * noise_cm, min_width)`: below a few noise
-    std the bounded penalty saturates on noise and the energy goes flat. The stages are
-    `[2 w_end, w_end]` (the robust per-frame alignment before them already brought every frame
-    within about `init_width_cm` of the mode, so the paper's coarse widths are not needed).
+    The width is `w_end = max(noise_multiple * noise_cm, min_width)`: below a few noise std
+    the bounded penalty saturates on noise and the energy goes flat. There is one spline stage
+    at `w_end`: the robust per-frame alignment before it already walked its own widths down to
+    about `init_width_cm` (about 5 noise std) and brought every frame near the mode, so the
+    paper's coarse widths are not needed (on the bench situations a `[2 w_end, w_end]`
+    schedule was no more accurate and twice as slow).
     The spacing is `clip((F - 1) / 4, 1, 4)` frames, so a short shot keeps at least about 7
     control points; shots under 7 frames get no spline stage (the velocity stencil needs 7).
 
@@ -190,10 +192,10 @@ def adaptive_plan(noise_cm: float, init_width_cm: float, num_frames: int, *,
 
     Example:
         >>> adaptive_plan(0.01, 0.05, 651).position_widths
-        (0.1, 0.05)
+        (0.05,)
     """
     w_end = max(noise_multiple * noise_cm, min_width)
-    widths = (2.0 * w_end, w_end)
+    widths = (w_end,)
     spline = num_frames >= 7
     return AdaptivePlan(float(noise_cm), float(init_width_cm), widths, tuple(w / 4.0 for w in widths),
                         float(min(4.0, max(1.0, (num_frames - 1) / 4.0))),
@@ -270,7 +272,7 @@ def _robust_initialization(x: Tensor, rot: Tensor, trans: Tensor, rest_x: Tensor
     Round k: width `w_k = max(3 median_{f,v} |S_fv - R_v|, min_width)`, two IRLS steps of
     `robust.robust_align` at `w_k`, then (unless the rest is given) the rest moves to the
     per-vertex mode at radius `w_k / 2` (`robust.rest_mode`; a full candidate search in
-    rounds 1 and 3, mean shift from the previous rest otherwise). Round 0 starts from the
+    round 2, once the frames are roughly aligned, mean shift from the previous rest otherwise). Round 0 starts from the
     median of the initially stabilized vertices, so the first widths are wide (nearly least
     squares) when the initialization is poor (identity under large head motion); the widths
     then shrink to about 5 noise std. Units are those of `x`.
@@ -290,7 +292,8 @@ def _robust_initialization(x: Tensor, rot: Tensor, trans: Tensor, rest_x: Tensor
         rot, trans = aligned.rot, aligned.trans
         if not fixed_rest:
             stab = apply_transforms(x, rot, trans)
-            rest_x = rest_mode(stab, 0.5 * width, start=None if r in (1, 3) else rest_x).contiguous()
+            search = r == min(2, rounds - 1)
+            rest_x = rest_mode(stab, 0.5 * width, start=None if search else rest_x).contiguous()
             del stab
     return rot, trans, rest_x, width
 
@@ -303,7 +306,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
                  position_widths: Sequence[float] = DEFAULT_POSITION_WIDTHS,
                  velocity_widths: Sequence[float] = DEFAULT_VELOCITY_WIDTHS,
                  velocity_weight: float = 1.0, spacing: float = 8.0, refinements: int = 2,
-                 iterations: int = 24, max_vertices: int = 2000, update_rest: bool = True,
+                 iterations: int | None = None, max_vertices: int = 2000, update_rest: bool = True,
                  noise_multiple: float = 5.0, min_width: float = 0.02, init_rounds: int = 6,
                  polish_iterations: int = 3,
                  history_size: int = 10, device: str | torch.device | None = "auto",
@@ -335,7 +338,8 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         spacing: "fixed": control-point spacing of the initial spline (frames).
         refinements: "fixed": midpoint refinements during the schedule (final spacing is
             `spacing / 2**refinements`).
-        iterations: L-BFGS iterations per stage (fixed; no convergence test).
+        iterations: L-BFGS iterations per stage (fixed; no convergence test); None = 12 for
+            "adaptive" (its stages start near the optimum), 24 for "fixed" (the paper's count).
         max_vertices: at most this many energy vertices, chosen by farthest-point sampling
             (deterministic) on the first frame.
         update_rest: re-estimate the rest (3 mean-shift steps at the stage's position width)
@@ -367,6 +371,8 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
                          f"{'' if adaptive else ' (the velocity stencil spans 7)'}, found {num_frames}")
     if num_vertices < 3:
         raise ValueError(f"vertices: expected at least 3 vertices, found {num_vertices}")
+    if iterations is None:
+        iterations = 12 if adaptive else 24
     for name, value in (("velocity_weight", velocity_weight), ("refinements", refinements),
                         ("iterations", iterations), ("init_rounds", init_rounds),
                         ("polish_iterations", polish_iterations)):

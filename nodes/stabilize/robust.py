@@ -90,8 +90,10 @@ def weighted_kabsch(x: Tensor, rest: Tensor, weights: Tensor | None = None) -> t
     return rot, trans
 
 
-def psi_weights(distance: Tensor, width: float) -> Tensor:
+def psi_weights(distance: Tensor, width: float | Tensor) -> Tensor:
     """IRLS weights `psi_w'(r) / r`, scaled to 1 at 0, of distances r = |S - R| (same unit as width).
+
+    `width` is a float or a tensor broadcasting against `distance`.
 
     Returns:
         (...) in [0, 1]: 1 for r < w/2, (w - r) / r for w/2 <= r < w, 0 beyond.
@@ -119,6 +121,10 @@ def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: flo
 
     Minimises `sum_{f, v} c_v psi_w(|rot_f x_fv + trans_f - rest_v|)` per frame by IRLS
     (weights `c_v psi_w'(r) / r`, see the module docstring), starting from (rot, trans).
+    Each step uses the width `max(w, 3 q_f)` for frame f, `q_f` the lower quartile of its
+    distances, so a frame that starts
+    far from the rest is first fitted nearly by least squares (annealing, as in robust ICP);
+    once aligned, every frame uses w.
 
     Args:
         x: (F, 3, V) float32 points.
@@ -135,7 +141,13 @@ def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: flo
     rot, trans = rot.double(), trans.double()
     weights = x.new_ones(x.shape[0], x.shape[2])
     for _ in range(iterations):
-        weights = psi_weights(_distances(x, rot, trans, rest), width)
+        dist = _distances(x, rot, trans, rest)
+        # A frame far from the rest (a poor start) gets a wider width for this step, so that
+        # its fit does not rest on the few vertices that happen to be within `width`.
+        # (The lower quartile: expressions move a minority of the vertices, a misalignment all.)
+        quartile = dist.kthvalue(max(1, dist.shape[1] // 4), dim=1).values
+        frame_width = (3.0 * quartile).clamp(min=width)
+        weights = psi_weights(dist, frame_width[:, None])
         if vertex_weights is not None:
             weights = weights * vertex_weights.to(weights.dtype)
         rot, trans = weighted_kabsch(x, rest, weights)
@@ -143,7 +155,7 @@ def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: flo
 
 
 def rest_mode(stab: Tensor, radius: float, *, start: Tensor | None = None, steps: int = 3,
-              candidates: int = 32, block_frames: int = 64) -> Tensor:
+              candidates: int = 32, sample_frames: int = 256, block_frames: int = 64) -> Tensor:
     """Return each vertex's mode over frames of its stabilized positions (see the module docstring).
 
     Args:
@@ -153,6 +165,7 @@ def rest_mode(stab: Tensor, radius: float, *, start: Tensor | None = None, steps
             there (cheap: one pass over the frames per step).
         steps: mean-shift steps after the candidate search (flat kernel of `radius`).
         candidates: at most this many evenly spaced candidate frames.
+        sample_frames: densities are counted over at most this many evenly spaced frames.
         block_frames: frames per block (bounds memory).
     Returns:
         (3, V) mode estimates; a vertex with no sample within `radius` of any candidate keeps
@@ -166,10 +179,12 @@ def rest_mode(stab: Tensor, radius: float, *, start: Tensor | None = None, steps
     if f <= 2:
         return median
     picks = torch.unique(torch.linspace(0, f - 1, min(candidates, f), device=stab.device).round().long())
+    # Densities are counted over at most `sample_frames` evenly spaced frames (as good a count).
+    samples = stab[torch.unique(torch.linspace(0, f - 1, min(sample_frames, f), device=stab.device).round().long())]
     counts = torch.zeros(picks.numel() + 1, v, dtype=stab.dtype, device=stab.device)
     centres = torch.cat([stab[picks], median[None]], 0)                  # (C + 1, 3, V)
-    for a in range(0, f, block_frames):
-        s = stab[a:a + block_frames]                                     # (B, 3, V)
+    for a in range(0, samples.shape[0], block_frames):
+        s = samples[a:a + block_frames]                                  # (B, 3, V)
         for c in range(centres.shape[0]):
             d2 = (s - centres[c]).square_().sum(1)                       # (B, V)
             counts[c] += (d2 < r2).sum(0).to(stab.dtype)
