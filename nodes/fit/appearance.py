@@ -1,0 +1,98 @@
+"""Per-vertex albedo and 9-coefficient SH lighting from one plate and a fitted pose (the
+paper's appearance step: estimated once, on a near-neutral frame, and used for every later
+render).
+
+With the head posed on the plate and rendered at the plate's size, every covered pixel p
+(away from silhouettes) sees a surface point with normal n_p and barycentric weights
+beta_pv on its triangle's corners. Lambertian shading `I_p = a_p (Y(n_p) . sh)`:
+
+1. lighting: linear least squares for `sh` (9 x 3) with the albedo fixed to the default
+   appearance's, `min sum_p |I_p - a0_p (Y(n_p) sh)|^2` (over the face's pixels);
+2. albedo: the image divided by the shading, projected on the vertices and pulled toward the
+   default where the plate says little: `a_v = (sum_p beta_pv I_p / s_p + mu a0_v) /
+   (sum_p beta_pv + mu)`; vertices not seen keep `a0_v`.
+
+The background colour is the median of the plate's uncovered pixels. Torch is imported at
+the top: import this module from node `run()` methods only.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from ..render.renderer import render_mesh, sh_basis, vertex_normals
+
+__all__ = ["Appearance", "estimate_appearance"]
+
+
+class Appearance(NamedTuple):
+    """albedo (V, 3) linear in [0, 1], sh (9, 3), background (3,) linear, seen (V,) bool."""
+
+    albedo: np.ndarray
+    sh: np.ndarray
+    background: np.ndarray
+    seen: np.ndarray
+
+
+def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
+                        intrinsics: np.ndarray, default_albedo: np.ndarray, *, distortion: np.ndarray | None = None,
+                        prior_weight: float = 1.0, region: np.ndarray | None = None) -> Appearance:
+    """Estimate albedo and SH lighting from one linear plate (see the module docstring).
+
+    Args:
+        image: (H, W, 3) linear RGB plate.
+        vertices: (V, 3) the fitted head, world frame, cm.
+        faces: (T, 3) triangles drawn.
+        world_to_camera: (4, 4); intrinsics: (4,) fx fy cx cy, pixels; distortion: (2,) or None.
+        default_albedo: (V, 3) the prior albedo a0.
+        prior_weight: mu, in pixels' worth of evidence.
+        region: (V,) bool vertices whose pixels fit the lighting (default: all).
+    Returns:
+        Appearance.
+    """
+    h, w = image.shape[:2]
+    dt = torch.float32
+    verts = torch.as_tensor(vertices, dtype=dt)[None]
+    faces_t = torch.as_tensor(np.asarray(faces, np.int64))
+    a0 = torch.as_tensor(default_albedo, dtype=dt)
+    with torch.no_grad():
+        out = render_mesh(verts, faces_t, torch.as_tensor(world_to_camera, dtype=dt)[None],
+                          torch.as_tensor(intrinsics, dtype=dt)[None], h, w, albedo=a0[None],
+                          sh=torch.zeros(1, 9, 3), distortion=None if distortion is None else
+                          torch.as_tensor(distortion, dtype=dt)[None], antialias=False)
+        tri = out.triangle[0]
+        covered = tri >= 0
+        interior = covered.clone()  # drop silhouette pixels (their colour mixes the background)
+        interior[1:] &= covered[:-1]
+        interior[:-1] &= covered[1:]
+        interior[:, 1:] &= covered[:, :-1]
+        interior[:, :-1] &= covered[:, 1:]
+        img = torch.as_tensor(image[..., :3], dtype=dt)
+        bg = img[~covered].median(0).values if (~covered).any() else torch.full((3,), 0.2)
+        ys, xs = torch.nonzero(interior, as_tuple=True)
+        corner = faces_t[tri[ys, xs]]  # (N, 3)
+        bary = out.barycentrics[0, ys, xs]  # (N, 3)
+        normals = vertex_normals(verts, faces_t)[0]
+        n = (bary[..., None] * normals[corner]).sum(1)
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        basis = sh_basis(n)  # (N, 9)
+        colour = img[ys, xs]  # (N, 3)
+        a_p = (bary[..., None] * a0[corner]).sum(1)
+        use = torch.ones(len(ys), dtype=torch.bool)
+        if region is not None:
+            use = torch.as_tensor(region)[corner].all(1)
+        sh = torch.zeros(9, 3)
+        for ch in range(3):
+            a = basis[use] * a_p[use, ch:ch + 1]
+            sol = torch.linalg.lstsq(a.double(), colour[use, ch:ch + 1].double()).solution
+            sh[:, ch] = sol[:, 0].float()
+        shading = (basis @ sh).clamp_min(0.05)  # (N, 3)
+        ratio = colour / shading
+        v = len(vertices)
+        acc = torch.zeros(v, 3).index_add(0, corner.reshape(-1), (bary[..., None] * ratio[:, None]).reshape(-1, 3))
+        wsum = torch.zeros(v).index_add(0, corner.reshape(-1), bary.reshape(-1))
+        albedo = ((acc + prior_weight * a0) / (wsum[:, None] + prior_weight)).clamp(0.0, 1.0)
+    return Appearance(albedo.numpy(), sh.numpy(), bg.numpy(), (wsum > 0).numpy())

@@ -1,0 +1,167 @@
+"""Landmark energies of the deep-energy fit (the paper's sections 4 and 8; see PAPERS.md §2)
+as plain functions on tensors.
+
+The fitted head is `x_R = R x(w) + t`: `x(w)` the face model's vertices (cm, model frame),
+`R` (3, 3) and `t` (3,) cm its pose in the world frame. A landmark of the render is tied to
+the head's surface by an *anchor*: a triangle (3 vertex indices) and barycentric weights,
+so its world position is `sum_j b_j x_R[v_j]` (see `nodes.fit.views.anchor_points`).
+
+Energy of one frame, summed over the calibrated cameras c that saw the face::
+
+    E = sum_c sum_i W_i |s_c (p*_ci - q_ci)|^2                   (E1, data)
+      + mu sum_c sum_(i,j) |s_c ((p*_cj - p*_ci) - (q_cj - q_ci))|^2   (E2, edges)
+      + lambda sum_k w_k^2                                        (prior, active shapes)
+
+with `p*` the network's landmarks on the plate and `q = pi_c(anchor(x_R)) + d` the network's
+landmarks on the render (`d` the offset between the network's point and its anchor's
+projection at anchoring time), image pixels. `s_c = 256 / side` of camera c's crop box
+converts pixels to pixels of a 256 x 256 crop (the paper's 3D-FAN input), so that `lambda =
+100` means what it means in the paper (residuals in 256-crop pixels, weights in [0, 1]).
+The edges `(i, j)` are consecutive points along each contour of the 68 Multi-PIE points
+(jaw, brows, nose, eyes, lips): the paper's edge-preserving term, which keeps the projected
+size right when a few landmarks are off.
+
+Torch is imported at the top: import this module from node `run()` methods only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..geometry.camera import project_points_torch
+
+__all__ = ["CROP_UNITS_PX", "EDGES_68", "landmark_weights", "axis_angle_to_rotmat", "rotmat_to_axis_angle",
+           "posed_anchor_points", "project_views", "landmark_energy"]
+
+CROP_UNITS_PX = 256.0
+"""Residuals are measured in pixels of a crop box resized to this side (the paper's 256)."""
+
+
+def _contour_edges() -> np.ndarray:
+    runs = [range(0, 17), range(17, 22), range(22, 27), range(27, 31), range(31, 36)]
+    loops = [range(36, 42), range(42, 48), range(48, 60), range(60, 68)]
+    edges = [(a, a + 1) for r in runs for a in list(r)[:-1]]
+    for r in loops:
+        r = list(r)
+        edges += [(a, b) for a, b in zip(r, r[1:] + r[:1])]
+    return np.asarray(edges, np.int64)
+
+
+EDGES_68 = _contour_edges()
+"""(E, 2) consecutive Multi-PIE points along the jaw, brows, nose and around eyes and lips."""
+
+JAW_68 = np.arange(0, 17)
+EYELIDS_68 = np.array([37, 38, 40, 41, 43, 44, 46, 47])
+MOUTH_68 = np.arange(48, 68)
+
+
+def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0) -> np.ndarray:
+    """Per-landmark weights W (the paper's weight matrix, diagonal) of one stage.
+
+    Args:
+        set_name: "non_jaw" (jaw contour 0-16 weight 0), "jaw" (only 0-16), or "all".
+        eyelid: weight of the eyelid points (37, 38, 40, 41, 43, 44, 46, 47): the network
+            reads them poorly on renders, and blinks are not fitted.
+        mouth: weight of the lip points 48-67 (the paper weights them up in the first
+            expression stage).
+    Returns:
+        (68,) float32 weights.
+    """
+    w = np.ones(68, np.float32)
+    w[EYELIDS_68] = eyelid
+    w[MOUTH_68] = mouth
+    if set_name == "non_jaw":
+        w[JAW_68] = 0.0
+    elif set_name == "jaw":
+        keep = np.zeros(68, bool)
+        keep[JAW_68] = True
+        w[~keep] = 0.0
+    elif set_name != "all":
+        raise ValueError(f"set_name: expected 'non_jaw', 'jaw' or 'all', found {set_name!r}")
+    return w
+
+
+def _skew(v: Tensor) -> Tensor:
+    zero = torch.zeros_like(v[..., 0])
+    x, y, z = v.unbind(-1)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
+
+
+def axis_angle_to_rotmat(omega: Tensor) -> Tensor:
+    """Rodrigues' formula, differentiable everywhere (Taylor series near 0).
+
+    Args:
+        omega: (..., 3) axis times angle, radians.
+    Returns:
+        (..., 3, 3) rotation matrices (act on column vectors).
+
+    Example:
+        >>> axis_angle_to_rotmat(torch.tensor([0.0, 0.0, 3.14159265 / 2]))[0, 1].item() < -0.99
+        True
+    """
+    theta2 = (omega * omega).sum(-1)[..., None, None]
+    small = theta2 < 1e-8
+    theta = theta2.clamp_min(1e-8).sqrt()
+    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp_min(1e-8))
+    k = _skew(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(k)
+    return eye + a * k + b * (k @ k)
+
+
+def rotmat_to_axis_angle(rot: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations -> (..., 3) axis-angle, radians (numpy, via scipy)."""
+    from scipy.spatial.transform import Rotation
+
+    rot = np.asarray(rot, np.float64)
+    return Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_rotvec().reshape(*rot.shape[:-2], 3)
+
+
+def posed_anchor_points(neutral: Tensor, deltas: Tensor, weights: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
+    """World positions of anchored surface points of the posed head.
+
+    Args:
+        neutral: (B, C, L, 3) anchor points of the model's neutral (identity included), cm.
+        deltas: (B, C, L, K, 3) the expression shapes at the anchors, cm per unit weight.
+        weights: (B, K) expression weights.
+        rot: (B, 3, 3) model-to-world rotation; trans: (B, 3) cm.
+    Returns:
+        (B, C, L, 3) world points, cm.
+    """
+    local = neutral + torch.einsum("bk,bclkd->bcld", weights, deltas)
+    return local @ rot[:, None].transpose(-1, -2) + trans[:, None, None, :]
+
+
+def project_views(points: Tensor, world_to_camera: Tensor, intrinsics: Tensor, distortion: Tensor | None) -> Tensor:
+    """(B, C, L, 3) world points -> (B, C, L, 2) pixels of camera c (`nodes.geometry.camera`).
+
+    `world_to_camera` (C, 4, 4), `intrinsics` (C, 4), `distortion` (C, 2) or None.
+    """
+    return project_points_torch(points, world_to_camera[None], intrinsics[None],
+                                None if distortion is None else distortion[None])
+
+
+def landmark_energy(predicted: Tensor, target: Tensor, scale: Tensor, weights: Tensor, *,
+                    edge_weight: float = 1.0) -> Tensor:
+    """E1 + mu E2 of the module docstring, per frame.
+
+    Args:
+        predicted: (B, C, L, 2) render landmarks q, image pixels.
+        target: (B, C, L, 2) plate landmarks p*, image pixels (rows of unseen views: any finite value).
+        scale: (B, C) 256 / crop side, 0 for a view that did not see the face.
+        weights: (L,) or (B, C, L) per-landmark weights W.
+        edge_weight: mu of the edge term (0 = off); an edge counts when both its points have weight > 0.
+    Returns:
+        (B,) energy in squared 256-crop pixels.
+    """
+    r = (target - predicted) * scale[..., None, None]
+    w = weights if weights.ndim == 3 else weights.expand(r.shape[:3])
+    e = (w * (r * r).sum(-1)).sum((-1, -2))
+    if edge_weight > 0 and r.shape[2] == 68:
+        a, b = EDGES_68[:, 0], EDGES_68[:, 1]
+        de = r[:, :, b] - r[:, :, a]
+        ew = ((w[..., a] > 0) & (w[..., b] > 0)).to(r.dtype)
+        e = e + edge_weight * (ew * (de * de).sum(-1)).sum((-1, -2))
+    return e

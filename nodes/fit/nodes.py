@@ -1,0 +1,573 @@
+"""Deep-energy fitting nodes (paper 2, see PAPERS.md §2 and `nodes.fit.solve`).
+
+- `fit.PlateCamera`: a camera JSON file, or (no file) a pinhole from the plate's size and a
+  typical field of view (`DEFAULT_FOV_DEG` horizontal).
+- `fit.EstimateAppearance`: rigid alignment on a near-neutral frame, then per-vertex albedo
+  and SH lighting from the plate (or the default appearance).
+- `fit.EstimateIdentity`: the 40 identity components from a few frames (with a prior), from a
+  file, or the mean; outputs the model with the identity applied.
+- `fit.RigidPose`, `fit.Expression`: the paper's stages, framewise (chunks run in parallel).
+- `fit.FlagFailures`: frames whose energy is far above the shot's median, or with no face.
+- `fit.SaveFit` (NPZ) and `fit.FitReport` (overlay PNGs).
+
+Multi-camera: the list ports `landmarks`, `boxes` and `cameras` take one connection per
+camera, in the same order; the energies of the cameras are summed. Pose outputs: rotation
+(9 values, row-major R, model to world), translation (cm, world). Torch is imported inside
+`run()`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from nodegraph import (FRAMEWISE, SEQUENCE, Camera, FaceModel, Files, ImageSequence, In, InputError, JsonValue,
+                       Landmarks2D, MeshSequence, Node, NodeParams, Out, Param, ParamSequence)
+from nodegraph.files import atomic_path, files_value
+
+__all__ = ["DEFAULT_FOV_DEG", "POSE_NAMES", "PlateCamera", "EstimateAppearance", "EstimateIdentity", "RigidPose",
+           "Expression", "FlagFailures", "SaveFit", "FitReport"]
+
+DEFAULT_FOV_DEG = 40.0
+"""Horizontal field of view of the default camera (no camera file): a typical video or phone
+lens (about 50 mm full-frame equivalent is 40 degrees)."""
+
+POSE_NAMES = [f"r{i}{j}" for i in range(3) for j in range(3)] + ["tx", "ty", "tz"]
+"""Columns of a pose ParamSequence: row-major rotation (model to world), translation cm."""
+
+_MIN_PRESENCE = 0.5
+
+
+# -- shared helpers --------------------------------------------------------------------------
+def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera]) -> None:
+    if not cameras:
+        raise InputError("cameras", "expected at least one camera, found none")
+    if len(landmarks) != len(cameras) or len(boxes) != len(cameras):
+        raise InputError("landmarks", f"expected one landmarks and one boxes input per camera ({len(cameras)}), "
+                         f"found {len(landmarks)} landmarks and {len(boxes)} boxes")
+    frames = landmarks[0].points.shape[0]
+    for c, (lm, bx) in enumerate(zip(landmarks, boxes)):
+        if lm.points.shape[1:] != (68, 2):
+            raise InputError("landmarks", f"camera {c}: expected (F, 68, 2) Multi-PIE points, found {lm.points.shape}")
+        if bx.values.shape != (frames, 4):
+            raise InputError("boxes", f"camera {c}: expected ({frames}, 4) x0 y0 x1 y1 boxes, found {bx.values.shape}")
+        if lm.points.shape[0] != frames:
+            raise InputError("landmarks", f"camera {c}: expected {frames} frames, found {lm.points.shape[0]}")
+
+
+def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera], device: str,
+           select: np.ndarray | None = None) -> Any:
+    import torch
+
+    from .views import FitViews
+
+    _check_views(landmarks, boxes, cameras)
+    pts = np.stack([lm.points for lm in landmarks], 1).astype(np.float32)  # (F, C, 68, 2)
+    conf = np.stack([lm.confidence.min(1) for lm in landmarks], 1)  # (F, C)
+    box = np.stack([b.values for b in boxes], 1).astype(np.float32)
+    seen = np.isfinite(pts).all((2, 3)) & np.isfinite(box).all(2) & (conf >= _MIN_PRESENCE)
+    if select is not None:
+        pts, box, seen = pts[select], box[select], seen[select]
+    pts = np.where(seen[..., None, None], pts, 0.0)
+    box = np.where(seen[..., None], box, np.array([0.0, 0.0, 1.0, 1.0], np.float32))
+    t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
+    dist = np.array([[c.k1, c.k2] for c in cameras])
+    return FitViews(t(pts), t(box), torch.as_tensor(seen, device=device),
+                    t(np.stack([c.world_to_camera for c in cameras])),
+                    t([[c.fx, c.fy, c.cx, c.cy] for c in cameras]), t(dist) if np.abs(dist).max() > 0 else None,
+                    t([[c.width, c.height] for c in cameras]))
+
+
+def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    from ..render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, hidden_faces, parse_appearance
+
+    if appearance is None:
+        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32),
+                hidden_faces(model.faces))
+    try:
+        return parse_appearance(appearance.value, model.neutral.shape[0], len(model.faces))
+    except ValueError as err:
+        raise InputError("appearance", str(err).removeprefix("appearance: ")) from err
+
+
+def _fit_model(model: FaceModel, appearance: JsonValue | None, device: str) -> Any:
+    from .views import FitModel
+
+    albedo, sh, background, hidden = _appearance(model, appearance)
+    faces = np.delete(np.asarray(model.faces), hidden, axis=0)
+    if len(model.landmarks) != 68:
+        raise InputError("model", f"expected 68 landmark vertices, found {len(model.landmarks)}")
+    return FitModel.build(model.neutral, model.expression_deltas, model.expression_names, faces, model.landmarks,
+                          albedo, sh, background, device)
+
+
+def _pose_values(state: Any) -> np.ndarray:
+    return np.concatenate([state.rot.detach().cpu().numpy().reshape(-1, 9),
+                           state.trans.detach().cpu().numpy()], 1).astype(np.float32)
+
+
+def _state_from(values: np.ndarray, weights: np.ndarray, device: str) -> Any:
+    import torch
+
+    from .solve import PoseState
+
+    t = lambda a: torch.as_tensor(np.ascontiguousarray(a, np.float32), device=device)  # noqa: E731
+    return PoseState(t(values[:, :9].reshape(-1, 3, 3)), t(values[:, 9:12]), t(weights))
+
+
+class _FitParams(NodeParams):
+    iterations: int = Param(20, ge=1, le=500, description="L-BFGS iterations per stage.")
+    rounds: int = Param(2, ge=1, le=10, description="Outer rounds (render, read with the network, anchor, "
+                        "run the stages).")
+    edge_weight: float = Param(1.0, ge=0, description="mu of the edge-preserving term on consecutive landmark "
+                               "differences.")
+    eyelid_weight: float = Param(0.2, ge=0, description="Weight of the eyelid landmarks (others 1).")
+    supersample: int = Param(2, ge=1, le=4, description="Supersampling of the renders the network reads.")
+    backprop_steps: int = Param(0, ge=0, le=200, description="Extra Adam steps on the deep energy "
+                                "backpropagated through the network and the renderer (the paper's literal "
+                                "solver; slow on a CPU).")
+    batch: int = Param(8, ge=1, description="Frames solved together.", affects_output=False)
+
+
+def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: list[ParamSequence],
+             cameras: list[Camera], model: FaceModel, appearance: JsonValue | None,
+             start: np.ndarray | None) -> dict[str, Any]:
+    import torch
+
+    from ..landmarks.network import load_face_mesh
+    from .solve import RIGID_STAGES, expression_stages, fit_stages, initial_pose, refine_backprop
+
+    p = node.params
+    torch.manual_seed(node.seed)
+    dev = node.device
+    fm = _fit_model(model, appearance, dev)
+    views = _views(landmarks, boxes, cameras, dev)
+    frames = views.seen.shape[0]
+    k = len(model.expression_names)
+    found = views.seen.any(1).cpu().numpy()
+    pose = np.full((frames, 12), np.nan, np.float32)
+    weights = np.full((frames, k), np.nan, np.float32)
+    energy = np.full(frames, np.nan, np.float32)
+    if start is not None:
+        found &= np.isfinite(start).all(1)
+    network = load_face_mesh(dev)
+    idx = np.flatnonzero(found)
+    for n0 in range(0, len(idx), p.batch):
+        sel = idx[n0:n0 + p.batch]
+        sub = _views(landmarks, boxes, cameras, dev, select=sel)
+        if start is None:
+            state = initial_pose(fm, sub)
+            stages, first_on_landmarks = RIGID_STAGES, True
+        else:
+            state = _state_from(start[sel, :12], np.nan_to_num(start[sel, 12:12 + k]) if start.shape[1] > 12
+                                else np.zeros((len(sel), k), np.float32), dev)
+            stages, first_on_landmarks = expression_stages(model.expression_names), False
+        state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
+                                 first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
+                                 edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
+                                 supersample=p.supersample)
+        if p.backprop_steps:
+            state, e = refine_backprop(fm, sub, state, stages[-1], network, steps=p.backprop_steps,
+                                       prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
+                                       eyelid_weight=p.eyelid_weight, supersample=p.supersample)
+        pose[sel] = _pose_values(state)
+        weights[sel] = state.weights.cpu().numpy()
+        energy[sel] = e.cpu().numpy()
+        node.progress(min(n0 + p.batch, len(idx)) / max(len(idx), 1), f"{stages_kind}: {n0 + len(sel)} frames")
+    return {"pose": pose, "weights": weights, "energy": energy, "failed": ~found}
+
+
+# -- nodes -----------------------------------------------------------------------------------
+class PlateCamera(Node):
+    """The plate's camera: a camera file, or a pinhole from the image size and a typical field of view."""
+
+    type_name = "fit.PlateCamera"
+    version = 1
+    kind = SEQUENCE
+
+    class Params(NodeParams):
+        path: str = Param("", input_file=True, description="Camera file (our JSON, OpenCV YAML/JSON); '' = "
+                          "a pinhole at the origin looking down +z with the plate's size.")
+        fov_deg: float = Param(DEFAULT_FOV_DEG, gt=1, lt=170, description="Horizontal field of view of the "
+                               "default camera, degrees.")
+
+    images = In(ImageSequence, doc="The plate (its size).")
+    camera = Out(Camera, doc="The camera (OpenCV convention, cm).")
+
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        return [Path(self.params.path)] if self.params.path else []
+
+    def run(self, images: ImageSequence) -> dict[str, Camera]:
+        h, w = images.pixels.shape[1:3]
+        if not self.params.path:
+            return {"camera": Camera.from_fov(int(w), int(h), self.params.fov_deg)}
+        from ..io.camera import load_camera
+
+        cam = load_camera(self.params.path)
+        if (cam.width, cam.height) != (w, h):
+            raise InputError("images", f"expected {cam.width} x {cam.height} images (camera '{self.params.path}'), "
+                             f"found {w} x {h}")
+        return {"camera": cam}
+
+
+def _near_neutral_frame(landmarks: Landmarks2D, found: np.ndarray) -> int:
+    """The detected frame with the least open mouth (inner-lip gap over the eye distance)."""
+    from ..landmarks.correspondence import inter_ocular_distance
+
+    pts = landmarks.points.astype(np.float64)
+    gap = np.linalg.norm(pts[:, 66] - pts[:, 62], axis=-1) / np.maximum(inter_ocular_distance(pts), 1e-6)
+    gap = np.where(found & np.isfinite(gap), gap, np.inf)
+    return int(np.argmin(gap))
+
+
+class EstimateAppearance(Node):
+    """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
+
+    type_name = "fit.EstimateAppearance"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        mode: Literal["estimate", "default"] = Param("estimate", description="estimate from the plate, or the "
+                                                     "default appearance (render.DefaultAppearance's).")
+        frame: int = Param(-1, ge=-1, description="Frame (index in the shot) to estimate from; -1 = the "
+                           "detected frame with the least open mouth.")
+        prior_weight: float = Param(1.0, ge=0, description="Pull of each vertex's albedo toward the default "
+                                    "(pixels' worth of evidence).")
+        iterations: int = Param(20, ge=1, le=500, description="L-BFGS iterations per rigid stage.")
+
+    images = In(ImageSequence, doc="Plate of the first camera.")
+    landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks of the first camera, pixels.")
+    boxes = In(ParamSequence, doc="x0 y0 x1 y1 crop boxes of the first camera.")
+    camera = In(Camera, doc="The first camera.")
+    model = In(FaceModel, doc="The face model (identity applied, if known).")
+    appearance = Out(JsonValue, doc="{'albedo': V x 3, 'sh': 9 x 3, 'background': 3, 'hidden_faces': [...], "
+                     "'frame': the frame used}.")
+
+    def run(self, images: ImageSequence, landmarks: Landmarks2D, boxes: ParamSequence, camera: Camera,
+            model: FaceModel) -> dict[str, JsonValue]:
+        from ..render.appearance import appearance_json
+
+        p = self.params
+        albedo0, sh0, bg0, hidden = _appearance(model, None)
+        if p.mode == "default":
+            return {"appearance": JsonValue(appearance_json(albedo0, sh0, tuple(bg0), hidden))}
+        from ..landmarks.network import load_face_mesh
+        from .appearance import estimate_appearance
+        from .solve import RIGID_STAGES, fit_stages, initial_pose
+
+        found = np.isfinite(boxes.values).all(1) & (landmarks.confidence.min(1) >= _MIN_PRESENCE)
+        if not found.any():
+            raise InputError("landmarks", "expected a frame with a face to estimate the appearance from, found none")
+        frame = _near_neutral_frame(landmarks, found) if p.frame < 0 else p.frame - self.frames.start
+        if not 0 <= frame < len(found) or not found[frame]:
+            raise InputError("landmarks", f"expected a face in frame {p.frame}, found none")
+        fm = _fit_model(model, None, self.device)
+        views = _views([landmarks], [boxes], [camera], self.device, select=np.array([frame]))
+        state, _, _ = fit_stages(fm, views, initial_pose(fm, views), RIGID_STAGES, load_face_mesh(self.device),
+                                 outer=2, iterations=p.iterations)
+        verts = fm.vertices(state.weights, state.rot, state.trans)[0].detach().cpu().numpy()
+        plate = images.to_linear()
+        idx = plate.colour_channels()
+        pixels = plate.pixels[frame][..., idx[:3]] if len(idx) >= 3 else np.repeat(plate.pixels[frame][..., idx[:1]], 3, -1)
+        dist = np.array([camera.k1, camera.k2]) if (camera.k1 or camera.k2) else None
+        app = estimate_appearance(pixels, verts, fm.faces, camera.world_to_camera,
+                                  np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
+                                  distortion=dist, prior_weight=p.prior_weight)
+        value = appearance_json(app.albedo, app.sh, tuple(app.background), hidden)
+        value["frame"] = int(frame + self.frames.start)
+        return {"appearance": JsonValue(value)}
+
+
+class EstimateIdentity(Node):
+    """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
+
+    type_name = "fit.EstimateIdentity"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        mode: Literal["estimate", "file", "mean"] = Param("estimate", description="estimate, read 'path', or "
+                                                         "all zeros (the model's average face).")
+        path: str = Param("", input_file=True, description="mode 'file': NPZ with 'identity' [I] or JSON "
+                          "{'identity': [...]}.")
+        frames_used: int = Param(3, ge=1, le=50, description="Detected frames used (spread over the shot).")
+        identity_prior: float = Param(20.0, gt=0, description="lambda_id of |identity|^2 (components are "
+                                      "N(0, 1)), 256-crop pixel^2 per unit^2.")
+        iterations: int = Param(40, ge=1, le=500, description="L-BFGS iterations per round.")
+
+    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
+    boxes = In(ParamSequence, many=True, doc="Crop boxes, one per camera.")
+    cameras = In(Camera, many=True, doc="The cameras, in the same order.")
+    model = In(FaceModel, doc="The face model (mean identity).")
+    appearance = In(JsonValue, optional=True, doc="From fit.EstimateAppearance (default appearance if absent).")
+    fitted_model = Out(FaceModel, doc="The model with the identity added to its neutral.")
+    identity = Out(JsonValue, doc="{'identity': [I floats]}.")
+
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        return [Path(self.params.path)] if self.params.mode == "file" and self.params.path else []
+
+    def _read(self, count: int) -> np.ndarray:
+        path = self.params.path
+        if not path:
+            raise InputError("path", "mode 'file' expected an identity file, found ''")
+        if path.lower().endswith(".npz"):
+            with np.load(path) as data:
+                if "identity" not in data:
+                    raise InputError("path", f"expected an 'identity' array in '{path}', found {sorted(data)}")
+                ident = np.asarray(data["identity"], np.float32).reshape(-1)
+        else:
+            ident = np.asarray(json.loads(Path(path).read_text()).get("identity", []), np.float32).reshape(-1)
+        if ident.shape != (count,) or not np.isfinite(ident).all():
+            raise InputError("path", f"expected {count} finite identity weights in '{path}', found {ident.shape}")
+        return ident
+
+    def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
+            model: FaceModel, appearance: JsonValue | None = None) -> dict[str, Any]:
+        p = self.params
+        count = model.identity_deltas.shape[0]
+        if p.mode == "mean":
+            ident = np.zeros(count, np.float32)
+        elif p.mode == "file":
+            ident = self._read(count)
+        else:
+            from ..landmarks.network import load_face_mesh
+            from .identity import solve_identity
+            from .solve import RIGID_STAGES, fit_stages, initial_pose
+
+            views = _views(landmarks, boxes, cameras, self.device)
+            found = np.flatnonzero(views.seen.any(1).cpu().numpy())
+            if not len(found):
+                raise InputError("landmarks", "expected frames with a face to estimate the identity from, found none")
+            pick = found[np.unique(np.linspace(0, len(found) - 1, min(p.frames_used, len(found))).round().astype(int))]
+            fm = _fit_model(model, appearance, self.device)
+            sub = _views(landmarks, boxes, cameras, self.device, select=pick)
+            net = load_face_mesh(self.device)
+            state, _, _ = fit_stages(fm, sub, initial_pose(fm, sub), RIGID_STAGES, net, outer=1, iterations=20)
+            ident, _ = solve_identity(fm, model.identity_deltas, sub, state, net, identity_prior=p.identity_prior,
+                                      iterations=p.iterations)
+        fitted = FaceModel(neutral=model.evaluate(np.zeros(len(model.expression_names)), ident),
+                           faces=model.faces, expression_deltas=model.expression_deltas,
+                           expression_names=list(model.expression_names), identity_deltas=model.identity_deltas,
+                           groups=model.groups, landmarks=model.landmarks, uv=model.uv, uv_faces=model.uv_faces)
+        return {"fitted_model": fitted, "identity": JsonValue({"identity": [float(x) for x in ident]})}
+
+
+class RigidPose(Node):
+    """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
+
+    type_name = "fit.RigidPose"
+    version = 1
+    kind = FRAMEWISE
+    resources = {"gpu": 1}
+    Params = _FitParams
+
+    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
+    boxes = In(ParamSequence, many=True, doc="Crop boxes x0 y0 x1 y1, one per camera.")
+    cameras = In(Camera, many=True, doc="The calibrated cameras, in the same order.")
+    model = In(FaceModel, doc="The face model (identity applied).")
+    appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
+    pose = Out(ParamSequence, doc="r00..r22 (model to world), tx ty tz cm; NaN where failed.")
+    energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
+    failed = Out(ParamSequence, doc="failed: 1 where no camera found the face.")
+
+    def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
+            model: FaceModel, appearance: JsonValue | None = None) -> dict[str, ParamSequence]:
+        out = _run_fit(self, "rigid", landmarks, boxes, cameras, model, appearance, None)
+        return {"pose": ParamSequence(out["pose"], list(POSE_NAMES)),
+                "energy": ParamSequence(out["energy"][:, None], ["energy"]),
+                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
+
+
+class _ExpressionParams(_FitParams):
+    prior: float = Param(100.0, ge=0, description="lambda of the L2 prior on the active weights (the paper's "
+                         "1e2), 256-crop pixel^2 per unit weight^2.")
+
+
+class Expression(Node):
+    """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
+
+    type_name = "fit.Expression"
+    version = 1
+    kind = FRAMEWISE
+    resources = {"gpu": 1}
+    Params = _ExpressionParams
+
+    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
+    boxes = In(ParamSequence, many=True, doc="Crop boxes, one per camera.")
+    cameras = In(Camera, many=True, doc="The cameras, in the same order.")
+    model = In(FaceModel, doc="The face model (identity applied).")
+    appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
+    pose = In(ParamSequence, doc="From fit.RigidPose.")
+    fitted = Out(ParamSequence, doc="r00..r22, tx ty tz (cm), then one column per expression weight.")
+    mesh = Out(MeshSequence, doc="(F, V, 3) the fitted head, world frame, cm (NaN where failed).")
+    energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
+    failed = Out(ParamSequence, doc="failed: 1 where no face or no rigid pose.")
+
+    def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
+            model: FaceModel, pose: ParamSequence, appearance: JsonValue | None = None) -> dict[str, Any]:
+        if pose.values.shape[1] != 12:
+            raise InputError("pose", f"expected 12 columns {POSE_NAMES}, found {pose.values.shape[1]}")
+        out = _run_fit(self, "expression", landmarks, boxes, cameras, model, appearance, pose.values)
+        values = np.concatenate([out["pose"], out["weights"]], 1)
+        rot = out["pose"][:, :9].reshape(-1, 3, 3)
+        verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \
+            + np.nan_to_num(out["pose"][:, None, 9:12])
+        verts[out["failed"]] = np.nan
+        return {"fitted": ParamSequence(values, list(POSE_NAMES) + list(model.expression_names)),
+                "mesh": MeshSequence(verts.astype(np.float32), np.asarray(model.faces)),
+                "energy": ParamSequence(out["energy"][:, None], ["energy"]),
+                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
+
+
+class FlagFailures(Node):
+    """Flag frames with no face, or whose final energy is far above the shot's median."""
+
+    type_name = "fit.FlagFailures"
+    version = 1
+    kind = SEQUENCE
+
+    class Params(NodeParams):
+        factor: float = Param(4.0, gt=1, description="A frame fails when its energy exceeds factor x the "
+                              "median energy of the fitted frames.")
+
+    energy = In(ParamSequence, doc="energy per frame (fit.Expression).")
+    failed = In(ParamSequence, doc="failed per frame (fit.Expression).")
+    flags = Out(ParamSequence, doc="failed: 1 = no face or energy outlier; energy_ratio: energy / median.")
+
+    def run(self, energy: ParamSequence, failed: ParamSequence) -> dict[str, ParamSequence]:
+        e = energy.values[:, 0].astype(np.float64)
+        bad = failed.values[:, 0] > 0.5
+        ok = ~bad & np.isfinite(e)
+        median = float(np.median(e[ok])) if ok.any() else np.nan
+        ratio = e / max(median, 1e-9) if ok.any() else np.full_like(e, np.nan)
+        flags = bad | ~np.isfinite(e) | (ratio > self.params.factor)
+        return {"flags": ParamSequence(np.stack([flags.astype(np.float32), ratio.astype(np.float32)], 1),
+                                       ["failed", "energy_ratio"])}
+
+
+class SaveFit(Node):
+    """Write the fit to one NPZ: rotation, translation (cm), weights, identity, failed, projected 68 points."""
+
+    type_name = "fit.SaveFit"
+    version = 1
+    kind = SEQUENCE
+    writes_files = True
+
+    class Params(NodeParams):
+        path: str = Param(..., output_file=True, description="Destination .npz file.")
+
+    fitted = In(ParamSequence, doc="From fit.Expression.")
+    flags = In(ParamSequence, doc="From fit.FlagFailures.")
+    energy = In(ParamSequence, doc="From fit.Expression.")
+    identity = In(JsonValue, doc="From fit.EstimateIdentity.")
+    model = In(FaceModel, doc="The fitted model (identity applied).")
+    camera = In(Camera, doc="The first camera (landmarks68 are projected into it).")
+    files = Out(Files, doc="The NPZ written.")
+
+    def run(self, fitted: ParamSequence, flags: ParamSequence, energy: ParamSequence, identity: JsonValue,
+            model: FaceModel, camera: Camera) -> dict[str, Files]:
+        from ..geometry.camera import project_points
+
+        path = self.params.path
+        if not path.lower().endswith(".npz"):
+            raise InputError("path", f"expected a file name ending in .npz, found '{path}'")
+        v = fitted.values
+        k = len(model.expression_names)
+        if v.shape[1] != 12 + k:
+            raise InputError("fitted", f"expected {12 + k} columns (pose + {k} weights), found {v.shape[1]}")
+        rot = v[:, :9].reshape(-1, 3, 3)
+        trans = v[:, 9:12]
+        weights = v[:, 12:]
+        lm = model.evaluate(np.nan_to_num(weights))[:, model.landmarks]
+        world = np.einsum("fij,flj->fli", rot, lm) + trans[:, None]
+        pts = project_points(world.astype(np.float64), camera.world_to_camera,
+                             [camera.fx, camera.fy, camera.cx, camera.cy],
+                             [camera.k1, camera.k2] if (camera.k1 or camera.k2) else None)
+        arrays = {"rotation": rot.astype(np.float32), "translation": trans.astype(np.float32),
+                  "weights": weights.astype(np.float32), "expression_names": np.array(model.expression_names),
+                  "identity": np.asarray(identity.value["identity"], np.float32),
+                  "failed": flags.values[:, 0] > 0.5, "energy": energy.values[:, 0].astype(np.float32),
+                  "landmarks68": pts.astype(np.float32),
+                  "frames": np.arange(self.frames.start, self.frames.stop, dtype=np.int64)}
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+        return {"files": files_value([path])}
+
+
+class FitReport(Node):
+    """One PNG per frame: the render blended over the plate, plate landmarks (green) and render landmarks (red)."""
+
+    type_name = "fit.FitReport"
+    version = 1
+    kind = FRAMEWISE
+    writes_files = True
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        folder: str = Param(..., output_file=True, description="Folder of fit.%04d.png files.")
+        blend: float = Param(0.5, ge=0, le=1, description="Opacity of the render over the plate.")
+
+    images = In(ImageSequence, doc="Plate of the first camera.")
+    landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks, pixels.")
+    boxes = In(ParamSequence, doc="Crop boxes.")
+    camera = In(Camera, doc="The first camera.")
+    model = In(FaceModel, doc="The fitted model (identity applied).")
+    appearance = In(JsonValue, optional=True, doc="Albedo and lighting.")
+    fitted = In(ParamSequence, doc="From fit.Expression.")
+    flags = In(ParamSequence, doc="From fit.FlagFailures.")
+    files = Out(Files, doc="The PNGs written by this chunk.")
+
+    def run(self, images: ImageSequence, landmarks: Landmarks2D, boxes: ParamSequence, camera: Camera,
+            model: FaceModel, fitted: ParamSequence, flags: ParamSequence,
+            appearance: JsonValue | None = None) -> dict[str, Files]:
+        import torch
+
+        from ..io.image import write_image
+        from ..landmarks.network import load_face_mesh
+        from ..landmarks.nodes import _network_images, draw_overlay
+        from ..render.renderer import render_mesh
+        from .views import crop_to_image, network_points, render_crops
+
+        fm = _fit_model(model, appearance, self.device)
+        views = _views([landmarks], [boxes], [camera], self.device)
+        plate = _network_images(images)
+        net = load_face_mesh(self.device)
+        k = len(model.expression_names)
+        written = []
+        folder = Path(self.params.folder)
+        for i, frame in enumerate(self.frames):
+            img = plate[i]
+            points = [(landmarks.points[i], (0.0, 1.0, 0.0))]
+            v = fitted.values[i]
+            if np.isfinite(v).all() and flags.values[i, 0] < 0.5:
+                state = _state_from(v[None, :12], v[None, 12:12 + k], self.device)
+                with torch.no_grad():
+                    verts = fm.vertices(state.weights, state.rot, state.trans)
+                    out = render_mesh(verts, fm.faces, torch.as_tensor(camera.world_to_camera, dtype=torch.float32)[None],
+                                      torch.tensor([[camera.fx, camera.fy, camera.cx, camera.cy]]), camera.height,
+                                      camera.width, albedo=fm.albedo, sh=fm.sh, background=fm.background,
+                                      adjacency=fm.adjacency)
+                    sub = _views([landmarks], [boxes], [camera], self.device, select=np.array([i]))
+                    crop, _, _ = render_crops(fm, sub, verts)
+                    rp, _ = network_points(crop, net)
+                    rp = crop_to_image(rp.reshape(1, 1, 68, 2), sub.boxes, int(net.input_size))[0, 0]
+                from nodegraph.types import linear_to_srgb
+
+                render = linear_to_srgb(out.image[0].clamp(0, 1).cpu().numpy())
+                alpha = self.params.blend * out.alpha[0].cpu().numpy()[..., None]
+                img = img * (1 - alpha) + render * alpha
+                points.append((rp.cpu().numpy(), (1.0, 0.0, 0.0)))
+            drawn = draw_overlay(img, boxes.values[i], points)
+            path = folder / f"fit.{frame:04d}.png"
+            with atomic_path(path) as tmp:
+                write_image(tmp, drawn, ["R", "G", "B"], "uint8")
+            written.append(path)
+            self.progress((i + 1) / len(self.frames), f"wrote {path}")
+        return {"files": files_value(written)}

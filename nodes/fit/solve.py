@@ -1,0 +1,327 @@
+"""The staged deep-energy solve of pose and expression (the paper's section 8), vectorized
+over the frames of a chunk.
+
+Each stage minimizes `nodes.fit.energy.landmark_energy` (+ the L2 prior on the active
+shapes) over a subset of the unknowns with L-BFGS (strong-Wolfe line search), starting from
+the previous stage:
+
+- rigid (`RIGID_STAGES`): translation on the non-jaw landmarks; rotation and translation on
+  the non-jaw, then the jaw, then all landmarks;
+- expression (`expression_stages`): jaw open only (lips weighted up), all jaw shapes, then
+  all jaw and mouth shapes together with the rigid pose; the L2 prior `lambda sum w^2`.
+
+Solver (`fit_stages`): the render landmarks `q = N(F(x_R))` are linearized about the
+current estimate through *anchors* (`nodes.fit.views`): the head is rendered, the network
+reads the render, and each of its points is tied to the surface point under it (triangle +
+barycentrics + a residual offset). Within an outer iteration the stages move the anchored
+points, whose projections change with the pose and shapes exactly as the network's points
+do to first order (the network tracks the surface); the next outer iteration renders and
+reads again. This is Gauss-Newton on the deep energy with the network's Jacobian replaced
+by the anchors' (one render and one forward pass per outer iteration, no backward pass
+through the network). `refine_backprop` is the paper's literal solver: gradient steps on
+`|N(F*) - N(F(x_R))|^2` backpropagated through the network and the renderer.
+
+Rotation is `R = exp([omega]) R0` (axis-angle `omega`, radians, about the model's origin),
+translation `t` in cm; weights are kept in [0, 1] by a stiff quadratic penalty.
+Torch is imported at the top: import this module from node `run()` methods only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .energy import axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points, project_views
+from .views import (Anchors, FitModel, FitViews, anchors_from_render, crop_to_image, landmark_anchors,
+                    network_points, render_crops)
+
+__all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
+           "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]
+
+BOUND_PENALTY = 1e4
+"""Weight of the quadratic penalty that keeps expression weights in [0, 1]."""
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage: which unknowns move and which landmarks count.
+
+    Attributes:
+        name: for logs and histories.
+        rotation, translation: the rigid pose moves.
+        shapes: indices of the expression shapes that move.
+        landmarks: "non_jaw", "jaw" or "all" (`nodes.fit.energy.landmark_weights`).
+        mouth_weight: weight of the lip points 48-67.
+    """
+
+    name: str
+    rotation: bool
+    translation: bool
+    shapes: tuple[int, ...] = ()
+    landmarks: str = "all"
+    mouth_weight: float = 1.0
+
+
+RIGID_STAGES = (
+    Stage("translation", False, True, (), "non_jaw"),
+    Stage("rigid_non_jaw", True, True, (), "non_jaw"),
+    Stage("rigid_jaw", True, True, (), "jaw"),
+    Stage("rigid_all", True, True, (), "all"),
+)
+"""The paper's rigid stages."""
+
+
+def jaw_shapes(names: list[str]) -> list[int]:
+    """Indices of the jaw shapes (ARKit names starting with 'jaw')."""
+    return [i for i, n in enumerate(names) if n.startswith("jaw")]
+
+
+def mouth_shapes(names: list[str]) -> list[int]:
+    """Indices of the mouth shapes (ARKit names starting with 'mouth')."""
+    return [i for i, n in enumerate(names) if n.startswith("mouth")]
+
+
+def expression_stages(names: list[str]) -> tuple[Stage, ...]:
+    """The paper's expression stages for a model with ARKit shape names (needs 'jawOpen')."""
+    if "jawOpen" not in names:
+        raise ValueError(f"expression names: expected a 'jawOpen' shape, found {names[:8]}...")
+    jaw = tuple(jaw_shapes(names))
+    both = tuple(sorted(set(jaw) | set(mouth_shapes(names))))
+    return (Stage("jaw_open", False, False, (names.index("jawOpen"),), "all", mouth_weight=2.0),
+            Stage("jaw", False, False, jaw, "all"),
+            Stage("jaw_mouth", True, True, both, "all"))
+
+
+class PoseState(NamedTuple):
+    """Per-frame unknowns: rot (B, 3, 3) model-to-world, trans (B, 3) cm, weights (B, K)."""
+
+    rot: Tensor
+    trans: Tensor
+    weights: Tensor
+
+
+def initial_pose(model: FitModel, views: FitViews) -> PoseState:
+    """The head facing the first camera that saw it, upright, at the depth of the eye distance.
+
+    Rotation: the model's frame (y up, z out of the face) turned to face the camera
+    (`R = R_cam^T diag(1, -1, -1)`); depth `z = f * IOD_model / IOD_plate` from the outer
+    eye corners (36, 45); x, y by back-projecting the centroid of the non-jaw landmarks.
+    """
+    b, c = views.seen.shape
+    dev, dt = model.neutral.device, model.neutral.dtype
+    first = torch.argmax(views.seen.to(torch.int64), 1)  # (B,) first camera that saw the face
+    e = views.world_to_camera[first]  # (B, 4, 4)
+    k = views.intrinsics[first]
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dt, device=dev))
+    rot = e[:, :3, :3].transpose(1, 2) @ flip
+    target = views.target[torch.arange(b), first]  # (B, 68, 2)
+    lm = model.neutral[torch.as_tensor(model.landmarks, device=dev)]
+    iod_model = (lm[36] - lm[45]).norm()
+    iod_px = (target[:, 36] - target[:, 45]).norm(dim=-1).clamp_min(1.0)
+    z = k[:, 0] * iod_model / iod_px
+    centre_px = target[:, 17:].mean(1)
+    x = (centre_px[:, 0] - k[:, 2]) / k[:, 0] * z
+    y = (centre_px[:, 1] - k[:, 3]) / k[:, 1] * z
+    cam_point = torch.stack([x, y, z], -1)
+    world_point = ((cam_point - e[:, :3, 3])[:, None] @ e[:, :3, :3])[:, 0]  # R^T (p - t)
+    trans = world_point - (lm[17:].mean(0) @ rot.transpose(1, 2))
+    return PoseState(rot, trans, torch.zeros(b, model.deltas.shape[0], dtype=dt, device=dev))
+
+
+def _anchored(model: FitModel, anchors: Anchors) -> tuple[Tensor, Tensor]:
+    """(B, C, L, 3) anchored neutral and (B, C, L, K, 3) anchored shapes."""
+    bary = anchors.bary[..., None]
+    neutral = (model.neutral[anchors.vertices] * bary).sum(-2)
+    deltas = model.deltas[:, anchors.vertices]  # (K, B, C, L, 3, 3)
+    deltas = (deltas * bary[None]).sum(-2).permute(1, 2, 3, 0, 4)
+    return neutral, deltas
+
+
+def predicted_points(model: FitModel, views: FitViews, anchors: Anchors, state: PoseState) -> Tensor:
+    """(B, C, 68, 2) render landmarks predicted from the anchors, image pixels."""
+    neutral, deltas = _anchored(model, anchors)
+    pts = posed_anchor_points(neutral, deltas, state.weights, state.rot, state.trans)
+    return project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
+
+
+def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors, state: PoseState, *,
+                prior: float, edge_weight: float, eyelid_weight: float, iterations: int,
+                rigid_prior: PoseState | None = None, rigid_prior_weight: float = 0.0) -> tuple[PoseState, Tensor]:
+    """Minimize one stage's energy over its unknowns (all frames at once; frames are independent).
+
+    Args:
+        stage: the unknowns and landmarks.
+        model, views, anchors: the linearization (see the module docstring).
+        state: the start.
+        prior: lambda of the L2 prior on the active weights (256-crop pixel^2 per unit weight^2).
+        edge_weight: mu of the edge term.
+        eyelid_weight: weight of the eyelid points.
+        iterations: L-BFGS iterations.
+        rigid_prior: pose the rigid unknowns are pulled toward in expression stages, with
+            `rigid_prior_weight` (per radian^2 and cm^2).
+    Returns:
+        the new state and (B,) the energy at it (data + edges + prior).
+    """
+    neutral, deltas = _anchored(model, anchors)
+    dev, dt = neutral.device, neutral.dtype
+    b = state.rot.shape[0]
+    w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight)
+    w_lm = torch.as_tensor(w_np, dtype=dt, device=dev)
+    scale = views.scale
+    shapes = torch.as_tensor(list(stage.shapes), dtype=torch.long, device=dev)
+    omega = torch.zeros(b, 3, dtype=dt, device=dev, requires_grad=stage.rotation)
+    trans = state.trans.detach().clone().requires_grad_(stage.translation)
+    active = state.weights.detach()[:, shapes].clone().requires_grad_(len(stage.shapes) > 0)
+    rot0 = state.rot.detach()
+
+    def evaluate() -> tuple[Tensor, PoseState]:
+        rot = axis_angle_to_rotmat(omega) @ rot0 if stage.rotation else rot0
+        weights = state.weights.detach()
+        if len(stage.shapes):
+            weights = weights.index_copy(1, shapes, active)
+        pts = posed_anchor_points(neutral, deltas, weights, rot, trans)
+        pred = project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
+        e = landmark_energy(pred, views.target, scale, w_lm, edge_weight=edge_weight)
+        if len(stage.shapes):
+            e = e + prior * (active * active).sum(-1)
+            e = e + BOUND_PENALTY * ((-active).clamp_min(0) ** 2 + (active - 1).clamp_min(0) ** 2).sum(-1)
+        if rigid_prior is not None and rigid_prior_weight > 0 and (stage.rotation or stage.translation):
+            e = e + rigid_prior_weight * ((trans - rigid_prior.trans) ** 2).sum(-1)
+            e = e + rigid_prior_weight * ((rot - rigid_prior.rot) ** 2).sum((-1, -2)) / 2
+        return e, PoseState(rot, trans, weights)
+
+    params = [p for p in (omega, trans, active) if p.requires_grad]
+    if params and iterations > 0:
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-7, tolerance_change=1e-10)
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            total = evaluate()[0].sum()
+            total.backward()
+            return total
+
+        opt.step(closure)
+    with torch.no_grad():
+        e, new = evaluate()
+        new = PoseState(new.rot.detach(), new.trans.detach(), new.weights.detach().clamp(0.0, 1.0))
+    return new, e.detach()
+
+
+def _render_anchors(model: FitModel, views: FitViews, state: PoseState, network: torch.nn.Module,
+                    fallback: Anchors, supersample: int) -> tuple[Anchors, Tensor]:
+    """Render the current estimate, read it with the network, anchor its points.
+
+    Returns:
+        anchors, and (B, C, 68, 2) the network's render points, image pixels.
+    """
+    size = int(network.input_size)
+    with torch.no_grad():
+        verts = model.vertices(state.weights, state.rot, state.trans)
+        image, triangle, pix = render_crops(model, views, verts, size=size, supersample=supersample)
+        points, presence = network_points(image, network)
+    anchors = anchors_from_render(model, views, triangle, pix, points, presence, fallback)
+    b, c = views.seen.shape
+    return anchors, crop_to_image(points.reshape(b, c, 68, 2), views.boxes, size)
+
+
+def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple[Stage, ...],
+               network: torch.nn.Module, *, outer: int = 2, first_outer_on_landmarks: bool = True,
+               prior: float = 100.0, edge_weight: float = 1.0, eyelid_weight: float = 0.2,
+               iterations: int = 30, supersample: int = 2, rigid_prior_weight: float = 0.0,
+               progress: Callable[[float, str], None] | None = None) -> tuple[PoseState, Tensor, list[dict]]:
+    """Run the stages `outer` times, re-rendering and re-anchoring before each round.
+
+    Args:
+        model, views: the model, appearance and plate landmarks.
+        state: the start (e.g. `initial_pose`, or the previous node's result).
+        stages: `RIGID_STAGES` or `expression_stages(...)`.
+        network: the landmark network (`MediaPipeFaceMesh`).
+        outer: rounds of render + anchor + stages.
+        first_outer_on_landmarks: the first round uses the model's 68 landmark vertices as
+            anchors instead of a render (cheap and good from a far start).
+        prior, edge_weight, eyelid_weight, iterations: see `solve_stage`.
+        supersample: of the renders.
+        rigid_prior_weight: pull of the rigid pose toward `state`'s in expression stages.
+    Returns:
+        the final state, (B,) energy of the final deep energy (data + edges with all landmarks,
+        measured on a last render, in 256-crop pixel^2), and a history of dicts
+        (round, stage, mean energy).
+    """
+    b, c = views.seen.shape
+    start = state
+    fallback = landmark_anchors(model, b, c)
+    history: list[dict] = []
+    for r in range(outer):
+        if r == 0 and first_outer_on_landmarks:
+            anchors = fallback
+        else:
+            anchors, _ = _render_anchors(model, views, state, network, fallback, supersample)
+        for stage in stages:
+            state, e = solve_stage(stage, model, views, anchors, state, prior=prior, edge_weight=edge_weight,
+                                   eyelid_weight=eyelid_weight, iterations=iterations, rigid_prior=start,
+                                   rigid_prior_weight=rigid_prior_weight)
+            history.append({"round": r, "stage": stage.name, "energy": float(e.mean())})
+        if progress is not None:
+            progress((r + 1) / (outer + 1), f"round {r + 1}/{outer}")
+    _, rendered = _render_anchors(model, views, state, network, fallback, supersample)
+    w_all = torch.as_tensor(landmark_weights("all", eyelid=eyelid_weight), dtype=rendered.dtype,
+                            device=rendered.device)
+    energy = landmark_energy(rendered, views.target, views.scale, w_all, edge_weight=edge_weight)
+    history.append({"round": outer, "stage": "final", "energy": float(energy.mean())})
+    return state, energy, history
+
+
+def refine_backprop(model: FitModel, views: FitViews, state: PoseState, stage: Stage, network: torch.nn.Module,
+                    *, steps: int = 10, lr_rot: float = 2e-3, lr_trans: float = 0.05, lr_weights: float = 0.02,
+                    prior: float = 100.0, edge_weight: float = 1.0, eyelid_weight: float = 0.2,
+                    supersample: int = 2) -> tuple[PoseState, Tensor]:
+    """The paper's literal solve: Adam on `|N(F*) - N(F(x_R))|^2` through network and renderer.
+
+    Crop boxes are held constant (the plate's). Slow on a CPU (a render, a forward and a
+    backward pass of both per step); used as an optional polish after `fit_stages`.
+
+    Args:
+        stage: which unknowns move and which landmarks count.
+        steps: Adam steps; lr_*: step sizes (radians, cm, weight units).
+    Returns:
+        the best state seen and its (B,) energy.
+    """
+    size = int(network.input_size)
+    b, c = views.seen.shape
+    dt, dev = state.trans.dtype, state.trans.device
+    w_lm = torch.as_tensor(landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight),
+                           dtype=dt, device=dev)
+    shapes = torch.as_tensor(list(stage.shapes), dtype=torch.long, device=dev)
+    omega = torch.zeros(b, 3, dtype=dt, device=dev, requires_grad=True)
+    trans = state.trans.clone().requires_grad_(True)
+    active = state.weights[:, shapes].clone().requires_grad_(True)
+    groups = [{"params": [omega], "lr": lr_rot if stage.rotation else 0.0},
+              {"params": [trans], "lr": lr_trans if stage.translation else 0.0},
+              {"params": [active], "lr": lr_weights}]
+    opt = torch.optim.Adam(groups)
+    best_e = torch.full((b,), float("inf"), dtype=dt, device=dev)
+    best = state
+    for _ in range(steps + 1):
+        rot = axis_angle_to_rotmat(omega) @ state.rot
+        weights = state.weights.index_copy(1, shapes, active.clamp(0.0, 1.0)) if len(stage.shapes) else state.weights
+        verts = model.vertices(weights, rot, trans)
+        image, _, _ = render_crops(model, views, verts, size=size, supersample=supersample)
+        points, _ = network_points(image, network)
+        pred = crop_to_image(points.reshape(b, c, 68, 2), views.boxes, size)
+        e = landmark_energy(pred, views.target, views.scale, w_lm, edge_weight=edge_weight)
+        e = e + prior * (active * active).sum(-1)
+        with torch.no_grad():
+            better = e < best_e
+            best_e = torch.where(better, e, best_e)
+            best = PoseState(torch.where(better[:, None, None], rot, best.rot),
+                             torch.where(better[:, None], trans, best.trans),
+                             torch.where(better[:, None], weights, best.weights))
+        opt.zero_grad()
+        e.sum().backward()
+        opt.step()
+    return PoseState(best.rot.detach(), best.trans.detach(), best.weights.detach()), best_e.detach()

