@@ -48,7 +48,8 @@ def _median(matrices: np.ndarray, perf) -> float:
     return stabilization_errors(matrices, perf.rigid.matrices, perf.stabilized.vertices).summary()["median_cm"]
 
 
-# -- the situations --------------------------------------------------------------------------------
+# -- the situations (ICP dominates their time: about 60 s of CPU for the seven) --------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("situation", list(SITUATIONS))
 def test_mode_pursuit_never_loses_to_procrustes_rigid_or_icp(model, situation):
     perf = _perf(model, **SITUATIONS[situation])
