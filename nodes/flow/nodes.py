@@ -1,0 +1,56 @@
+"""Flow nodes: `flow.OpticalFlow` (image sequence -> flow from every frame to the next).
+
+Torch is imported inside `run()` (see tests/test_startup.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nodegraph import FlowSequence, ImageSequence, InputError, Node, NodeParams, Param, windowed
+from nodegraph import In, Out
+
+__all__ = ["OpticalFlow"]
+
+
+class OpticalFlow(Node):
+    """Dense optical flow from each frame to the next (coarse-to-fine robust Horn-Schunck, torch)."""
+
+    type_name = "flow.OpticalFlow"
+    version = 1
+    kind = windowed(1)
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        alpha: float = Param(0.06, gt=0, description="Smoothness weight (normalized intensity units).")
+        levels: int = Param(5, ge=1, le=8, description="Pyramid levels at most.")
+        warps: int = Param(3, ge=1, le=10, description="Warps per level.")
+        iterations: int = Param(40, ge=1, le=500, description="Jacobi iterations per warp, coarsest level.")
+        finest_iterations: int = Param(12, ge=1, le=500, description="Jacobi iterations per warp, finest level.")
+
+    images = In(ImageSequence, doc="Plates (F, H, W, C); colour channels reduced to luminance (linear light).")
+    flow = Out(FlowSequence, doc="(F, H, W, 2) pixels, x right y down: frame f -> f + 1; the last frame "
+               "of the shot is invalid (zero flow).")
+
+    def run(self, images: ImageSequence) -> dict[str, FlowSequence]:
+        import torch
+
+        from .dense import FlowSettings, dense_flow
+
+        p = self.params
+        colour = images.colour_channels()
+        if not colour:
+            raise InputError("images", f"expected colour channels, found {images.channels}")
+        pix = images.to_linear().pixels[..., colour]
+        f, h, w = pix.shape[:3]
+        settings = FlowSettings(alpha=p.alpha, levels=p.levels, warps=p.warps, iterations=p.iterations,
+                                finest_iterations=p.finest_iterations)
+        out = np.zeros((f, h, w, 2), np.float32)
+        valid = np.zeros(f, bool)
+        with torch.no_grad():
+            for i in range(f - 1):  # one pair per call: a pair's flow never depends on its chunk
+                a = torch.as_tensor(pix[i:i + 2], device=self.device).permute(0, 3, 1, 2)
+                out[i] = dense_flow(a[:1], a[1:], settings)[0].permute(1, 2, 0).cpu().numpy()
+                valid[i] = True
+                self.progress((i + 1) / max(f - 1, 1), f"flow {i + 1}/{f - 1} pairs")
+        return {"flow": FlowSequence(out, valid)}

@@ -1,0 +1,70 @@
+"""Three-frame weighted averaging of pose and expression parameters (the paper's appendix A).
+
+`average_params` replaces every frame's parameters by the weighted mean over frames
+i - 1, i, i + 1 (weights (1 - c) / 2, c, (1 - c) / 2, renormalized over the frames that
+exist and are not failed): translations and weights linearly, rotations by the weighted
+quaternion mean of Markley et al. 2007 ("Averaging quaternions", the eigenvector of the
+largest eigenvalue of `sum_j w_j q_j q_j^T`, sign-invariant).
+
+numpy only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .layout import axis_angle_from_quat, quat_from_axis_angle
+
+__all__ = ["quaternion_mean", "average_params"]
+
+
+def quaternion_mean(quats: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted mean rotation (Markley et al. 2007).
+
+    Args:
+        quats: (..., N, 4) unit quaternions (w, x, y, z), any signs.
+        weights: (..., N) >= 0, not all 0.
+    Returns:
+        (..., 4) unit quaternion, w >= 0.
+
+    Example:
+        >>> q = np.array([[1.0, 0, 0, 0], [-1.0, 0, 0, 0]])
+        >>> quaternion_mean(q, np.array([0.5, 0.5])).round(6).tolist()
+        [1.0, 0.0, 0.0, 0.0]
+    """
+    m = np.einsum("...n,...ni,...nj->...ij", weights, quats, quats)
+    _, vecs = np.linalg.eigh(m)
+    q = vecs[..., :, -1]
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray, *, centre_weight: float = 0.5,
+                   failed: np.ndarray | None = None) -> np.ndarray:
+    """Three-frame weighted average of a parameter sequence.
+
+    Args:
+        values: (F, D) parameters.
+        rotation: (3,) columns of the axis-angle rotation, rad.
+        others: column indices averaged linearly (translation cm, weights).
+        centre_weight: c, the weight of the frame itself, in (0, 1].
+        failed: (F,) bool, frames neither averaged nor used as neighbours (kept as they are).
+    Returns:
+        (F, D) float64 averaged parameters (other columns copied).
+    """
+    v = np.asarray(values, np.float64)
+    f = len(v)
+    ok = np.ones(f, bool) if failed is None else ~np.asarray(failed, bool)
+    side = 0.5 * (1.0 - centre_weight)
+    w = np.zeros((f, 3))
+    w[:, 1] = centre_weight
+    w[1:, 0] = side * ok[:-1]
+    w[:-1, 2] = side * ok[1:]
+    w /= w.sum(1, keepdims=True)
+    idx = np.clip(np.arange(f)[:, None] + np.array([-1, 0, 1]), 0, f - 1)  # (F, 3)
+    out = v.copy()
+    others = np.asarray(others, np.int64)
+    out[:, others] = np.einsum("fn,fnd->fd", w, v[idx][:, :, others])
+    quats = quat_from_axis_angle(v[:, rotation])[idx]  # (F, 3, 4)
+    out[:, rotation] = axis_angle_from_quat(quaternion_mean(quats, w))
+    out[~ok] = v[~ok]
+    return out

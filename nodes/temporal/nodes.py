@@ -1,0 +1,244 @@
+"""Temporal nodes: flow infill of failed frames and temporal smoothing of fitted parameters.
+
+- `temporal.FlowInfill`: failed frames solved from their good neighbours by plate flow.
+- `temporal.Average`: three-frame weighted average (quaternion mean for rotations).
+- `temporal.SelfFlow`, `temporal.PlateFlow`: per-frame flow solves against both neighbours.
+- `temporal.Hybrid`: averaging, then plate flow (the paper's best).
+
+All are windowed: a frame's result depends only on frames within the halo, so any chunk size
+gives the same result. Parameters use the layout of `nodes.temporal.layout` (rot_x..z
+axis-angle rad, trans_x..z cm, weights by shape name). Torch is imported inside `run()`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+
+from nodegraph import Camera, FaceModel, FlowSequence, In, InputError, Node, NodeParams, Out, ParamSequence, Param
+from nodegraph import windowed
+
+from .layout import params_layout
+
+__all__ = ["FlowInfill", "Average", "SelfFlow", "PlateFlow", "Hybrid", "MAX_GAP", "MAX_SWEEPS"]
+
+MAX_GAP = 8
+"""Longest run of failed frames `temporal.FlowInfill` can solve (its halo), frames."""
+
+MAX_SWEEPS = 3
+"""Most smoothing sweeps (red-black sweeps reach 2 frames each: halo 2 * MAX_SWEEPS, + 1 for Hybrid)."""
+
+Shapes = Literal["rigid", "jaw_mouth", "all"]
+
+
+def _shape_ids(names: list[str], which: str) -> list[int]:
+    if which == "rigid":
+        return []
+    if which == "all":
+        return list(range(len(names)))
+    return [i for i, n in enumerate(names) if n.startswith("jaw") or n.startswith("mouth")]
+
+
+def _failed_mask(failed: ParamSequence | None, frames: int) -> np.ndarray:
+    if failed is None:
+        return np.zeros(frames, bool)
+    if failed.values.shape[1] < 1:
+        raise InputError("failed", f"expected (F, 1) flags, found {failed.values.shape}")
+    return failed.values[:, 0] > 0.5
+
+
+class _FlowNode(Node):
+    """Shared set-up of the flow solves: model, camera, plate flow, layout."""
+
+    resources = {"gpu": 1}
+
+    def _setup(self, params: ParamSequence, model: FaceModel, camera: Camera, plate_flow: FlowSequence,
+               shapes: str, stride: int) -> tuple[Any, Any, Any, Any, Any]:
+        import torch
+
+        from .flowfit import FlowModel
+
+        try:
+            layout = params_layout(params.names, model.expression_names, "fitted")
+        except ValueError as err:
+            raise InputError("fitted", str(err).removeprefix("fitted: ")) from err
+        if plate_flow.flow.shape[1:3] != (camera.height, camera.width):
+            raise InputError("plate_flow", f"expected flow of the camera's size ({camera.height}, {camera.width}), "
+                             f"found {plate_flow.flow.shape[1:3]}")
+        from ..render.appearance import ICT_HIDDEN_VERTEX_RANGES, hidden_faces
+
+        faces = np.asarray(model.faces, np.int64)
+        if model.neutral.shape[0] > ICT_HIDDEN_VERTEX_RANGES[-1][1]:
+            faces = faces[np.setdiff1d(np.arange(len(faces)), hidden_faces(faces))]
+        fm = FlowModel.build(model.neutral, model.expression_deltas, faces, camera.world_to_camera,
+                             [camera.fx, camera.fy, camera.cx, camera.cy], camera.height, camera.width,
+                             _shape_ids(model.expression_names, shapes), stride=stride, device=self.device)
+        v = params.values.astype(np.float64)
+        k = len(model.expression_names)
+        x = np.zeros((len(v), 6 + k))
+        x[:, :3] = v[:, layout.rotation]
+        x[:, 3:6] = v[:, layout.translation]
+        have = layout.weights >= 0
+        x[:, 6:][:, have] = v[:, layout.weights[have]]
+        dev = self.device
+        flows = torch.as_tensor(plate_flow.flow, dtype=torch.float64, device=dev)
+        return fm, torch.as_tensor(x, device=dev), flows, layout, have
+
+    @staticmethod
+    def _pack(params: ParamSequence, x: Any, layout: Any, have: np.ndarray) -> ParamSequence:
+        x = x.cpu().numpy()
+        out = params.values.astype(np.float64).copy()
+        out[:, layout.rotation] = x[:, :3]
+        out[:, layout.translation] = x[:, 3:6]
+        out[:, layout.weights[have]] = x[:, 6:][:, have]
+        return ParamSequence(out.astype(np.float32), list(params.names))
+
+
+class _SolveParams(NodeParams):
+    shapes: Shapes = Param("jaw_mouth", description="Expression shapes solved with the pose: none ('rigid'), "
+                           "ARKit jaw* and mouth* ('jaw_mouth'), or all.")
+    iterations: int = Param(8, ge=1, le=50, description="Levenberg-Marquardt iterations per frame solve.")
+    stride: int = Param(2, ge=1, le=8, description="Residual pixel stride (1 = every covered pixel).")
+
+
+class FlowInfill(_FlowNode):
+    """Solve frames the fit flagged as failed from their good neighbours by plate flow."""
+
+    type_name = "temporal.FlowInfill"
+    version = 1
+    kind = windowed(MAX_GAP)
+
+    class Params(_SolveParams):
+        max_gap: int = Param(MAX_GAP, ge=1, le=MAX_GAP, description="Longest run of failed frames solved; "
+                             "longer runs stay failed.")
+        sweeps: int = Param(1, ge=1, le=4, description="Forward + backward passes over a run.")
+
+    fitted = In(ParamSequence, doc="Fitted parameters (rot_x..z rad, trans_x..z cm, weights by name).")
+    failed = In(ParamSequence, doc="(F, 1) 1 where the fit failed.")
+    plate_flow = In(FlowSequence, doc="Optical flow of the plates, frame f -> f + 1 (flow.OpticalFlow).")
+    model = In(FaceModel, doc="The face model fitted.")
+    camera = In(Camera, doc="The plates' camera.")
+    infilled = Out(ParamSequence, doc="Parameters with the solved runs filled in.")
+    still_failed = Out(ParamSequence, doc="(F, 1) 1 where frames stayed unsolved.")
+
+    def run(self, fitted: ParamSequence, failed: ParamSequence, plate_flow: FlowSequence, model: FaceModel,
+            camera: Camera) -> dict[str, ParamSequence]:
+        from .sweeps import infill
+
+        p = self.params
+        fm, x, flows, layout, have = self._setup(fitted, model, camera, plate_flow, p.shapes, p.stride)
+        mask = _failed_mask(failed, len(x))
+        at_start = self.frames.start == self.full_frames.start if len(self.full_frames) else True
+        at_end = self.frames.stop == self.full_frames.stop if len(self.full_frames) else True
+        x, still = infill(fm, x, flows, plate_flow.valid, mask, max_gap=p.max_gap, sweeps=p.sweeps,
+                          iterations=p.iterations, at_start=at_start, at_end=at_end, progress=self.progress)
+        return {"infilled": self._pack(fitted, x, layout, have),
+                "still_failed": ParamSequence(still.astype(np.float32)[:, None], ["failed"])}
+
+
+class _SmoothParams(_SolveParams):
+    sweeps: int = Param(2, ge=1, le=MAX_SWEEPS, description="Sweeps over the frames.")
+    scheme: Literal["jacobi", "red_black"] = Param("jacobi", description="Jacobi (all frames from the "
+                                                   "previous sweep) or red-black Gauss-Seidel sweeps.")
+    prior_weight: float = Param(0.0, ge=0, description="Weight of the prior toward the input values "
+                                "(units 0.01 rad, 0.1 cm, 0.1 weight; squared pixels of mean flow error).")
+    shapes: Shapes = Param("rigid", description="Expression shapes solved with the pose ('rigid' = none).")
+
+
+class _Smooth(_FlowNode):
+    kind = windowed(2 * MAX_SWEEPS)
+    _plate, _self, _average = 1.0, 0.0, False
+
+    class Params(_SmoothParams):
+        pass
+
+    fitted = In(ParamSequence, doc="Parameters (rot_x..z rad, trans_x..z cm, weights by name).")
+    plate_flow = In(FlowSequence, doc="Optical flow of the plates, frame f -> f + 1 (flow.OpticalFlow).")
+    model = In(FaceModel, doc="The face model fitted.")
+    camera = In(Camera, doc="The plates' camera.")
+    failed = In(ParamSequence, optional=True, doc="(F, 1) 1 for frames to leave alone (and not use).")
+    smoothed = Out(ParamSequence, doc="Smoothed parameters.")
+
+    def run(self, fitted: ParamSequence, plate_flow: FlowSequence, model: FaceModel, camera: Camera,
+            failed: ParamSequence | None = None) -> dict[str, ParamSequence]:
+        import torch
+
+        from .averaging import average_params
+        from .sweeps import smooth
+
+        p = self.params
+        fm, x, flows, layout, have = self._setup(fitted, model, camera, plate_flow, p.shapes, p.stride)
+        mask = _failed_mask(failed, len(x))
+        prior = x.clone()
+        if self._average:
+            avg = average_params(x.cpu().numpy(), np.arange(3), np.arange(3, x.shape[1]),
+                                 centre_weight=p.centre_weight, failed=mask)
+            x = torch.as_tensor(avg, device=x.device)
+            if not p.prior_to_raw:
+                prior = x.clone()
+        x = smooth(fm, x, flows, plate_flow.valid, ~mask, sweeps=p.sweeps, scheme=p.scheme,
+                   parity=self.frames.start % 2, iterations=p.iterations, plate_weight=self._plate,
+                   self_weight=self._self, prior_weight=p.prior_weight, prior=prior, progress=self.progress)
+        return {"smoothed": self._pack(fitted, x, layout, have)}
+
+
+class PlateFlow(_Smooth):
+    """Per-frame plate-flow refinement against both neighbours (render flow matched to plate flow)."""
+
+    type_name = "temporal.PlateFlow"
+    version = 1
+
+
+class SelfFlow(_Smooth):
+    """Per-frame self-flow smoothing: render flow into the frame matched to render flow out of it."""
+
+    type_name = "temporal.SelfFlow"
+    version = 1
+    _plate, _self = 0.0, 1.0
+
+    class Params(_SmoothParams):
+        prior_weight: float = Param(0.1, ge=0, description="Weight of the prior toward the input values "
+                                    "(units 0.01 rad, 0.1 cm, 0.1 weight).")
+
+
+class Hybrid(_Smooth):
+    """Three-frame averaging, then plate-flow refinement against both neighbours (the paper's best)."""
+
+    type_name = "temporal.Hybrid"
+    version = 1
+    kind = windowed(2 * MAX_SWEEPS + 1)
+    _average = True
+
+    class Params(_SmoothParams):
+        centre_weight: float = Param(0.5, gt=0, le=1, description="Weight of the frame itself in the average.")
+        prior_to_raw: bool = Param(False, description="Prior toward the raw input (True) or the averaged values.")
+        prior_weight: float = Param(0.02, ge=0, description="Weight of the prior (units 0.01 rad, 0.1 cm, 0.1).")
+
+
+class Average(Node):
+    """Three-frame weighted average of the parameters (rotations by quaternion mean)."""
+
+    type_name = "temporal.Average"
+    version = 1
+    kind = windowed(1)
+
+    class Params(NodeParams):
+        centre_weight: float = Param(0.5, gt=0, le=1, description="Weight of the frame itself; each "
+                                     "neighbour gets (1 - c) / 2.")
+
+    fitted = In(ParamSequence, doc="Parameters (rot_x..z rad, trans_x..z cm, then other columns).")
+    failed = In(ParamSequence, optional=True, doc="(F, 1) 1 for frames to leave alone (and not use).")
+    averaged = Out(ParamSequence, doc="Averaged parameters.")
+
+    def run(self, fitted: ParamSequence, failed: ParamSequence | None = None) -> dict[str, ParamSequence]:
+        from .averaging import average_params
+
+        try:
+            layout = params_layout(fitted.names, [], "fitted")
+        except ValueError as err:
+            raise InputError("fitted", str(err).removeprefix("fitted: ")) from err
+        others = np.setdiff1d(np.arange(fitted.values.shape[1]), layout.rotation)
+        out = average_params(fitted.values, layout.rotation, others, centre_weight=self.params.centre_weight,
+                             failed=_failed_mask(failed, fitted.num_frames))
+        return {"averaged": ParamSequence(out.astype(np.float32), list(fitted.names))}

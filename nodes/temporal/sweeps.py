@@ -1,0 +1,162 @@
+"""Sweeps over frames of the plate-flow solve: flow infill of failed frames, and smoothing.
+
+- `infill`: each run of failed frames [a, b] no longer than `max_gap` is solved from its good
+  neighbours: forward from frame a - 1 (each frame from the one before, prev term only, started
+  at the previous frame's values), then backward from frame b + 1 (both neighbours); repeated
+  `sweeps` times (later passes use both neighbours both ways). A run at the start of the shot
+  is solved backward first. Runs longer than `max_gap`, or that reach the edge of the frames
+  received without that edge being the shot's, stay failed, so that the result of every frame
+  depends only on frames within `max_gap` of it (the node's halo): chunk-invariant.
+- `smooth`: `sweeps` Jacobi sweeps (every frame from its neighbours' previous values; radius
+  1 per sweep) or red-black Gauss-Seidel sweeps (frames of even absolute index, then odd,
+  each from the newest values; radius 2 per sweep) of the per-frame energy of
+  `nodes.temporal.flowfit` (plate flow, self flow, prior).
+
+One frame per `solve_frames` call, so a frame's result never depends on the batch it is in.
+Torch at module level: import from node `run()` methods only.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .flowfit import FlowModel, Terms, solve_frames
+
+__all__ = ["failed_runs", "infill", "smooth"]
+
+
+def failed_runs(failed: np.ndarray) -> list[tuple[int, int]]:
+    """[(a, b)] inclusive runs of True in a (F,) bool array.
+
+    Example:
+        >>> failed_runs(np.array([0, 1, 1, 0, 1], bool))
+        [(1, 2), (4, 4)]
+    """
+    f = np.r_[False, np.asarray(failed, bool), False]
+    d = np.diff(f.astype(np.int8))
+    return [(int(a), int(b) - 1) for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
+
+
+class _Problem:
+    def __init__(self, model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, usable: np.ndarray,
+                 iterations: int, plate_weight: float = 1.0, self_weight: float = 0.0,
+                 prior: Tensor | None = None, prior_weight: float = 0.0):
+        self.model, self.x, self.flows = model, x, flows
+        self.pair_valid, self.usable = np.asarray(pair_valid, bool), np.asarray(usable, bool)
+        self.iterations = iterations
+        self.plate_weight, self.self_weight = plate_weight, self_weight
+        self.prior, self.prior_weight = prior, prior_weight
+
+    def solve(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True,
+              start: Tensor | None = None) -> Tensor:
+        f = len(x)
+        prev_on = use_prev and i > 0 and self.usable[i - 1] and self.pair_valid[i - 1]
+        next_on = use_next and i + 1 < f and self.usable[i + 1] and self.pair_valid[i]
+        if not (prev_on or next_on):
+            return x[i]
+        ip, inx = max(i - 1, 0), min(i + 1, f - 1)
+        flat = self.flows
+        terms = Terms(x[ip:ip + 1], x[inx:inx + 1], torch.tensor([prev_on]), torch.tensor([next_on]),
+                      flat[ip:ip + 1], flat[i:i + 1], self.plate_weight, self.self_weight,
+                      None if self.prior is None else self.prior[i:i + 1], self.prior_weight)
+        x0 = (x[i] if start is None else start)[None]
+        return solve_frames(self.model, x0, terms, iterations=self.iterations)[0]
+
+
+def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, failed: np.ndarray, *,
+           max_gap: int, sweeps: int = 1, iterations: int = 8, at_start: bool = True, at_end: bool = True,
+           progress: Callable[[float, str], None] | None = None) -> tuple[Tensor, np.ndarray]:
+    """Solve the failed frames from their neighbours by plate flow (module docstring).
+
+    Args:
+        model: FlowModel (its free unknowns are solved).
+        x: (F, 6 + K) float64 parameters (failed frames: any finite values).
+        flows: (F, H, W, 2) float64 plate flow, frame f -> f + 1, pixels.
+        pair_valid: (F,) bool, flows[f] is valid.
+        failed: (F,) bool.
+        max_gap: longest run solved, frames.
+        sweeps: forward + backward passes.
+        iterations: LM iterations per frame solve.
+        at_start, at_end: frame 0 / F - 1 is the shot's first / last frame (not a chunk edge).
+        progress: called with (fraction, message).
+    Returns:
+        (F, 6 + K) parameters and (F,) bool frames still failed.
+    """
+    x = x.clone()
+    failed = np.asarray(failed, bool).copy()
+    f = len(x)
+    runs = failed_runs(failed)
+    todo = []
+    for a, b in runs:
+        if b - a + 1 > max_gap or (a == 0 and not at_start) or (b == f - 1 and not at_end) or (a == 0 and b == f - 1):
+            continue
+        todo.append((a, b))
+    for n, (a, b) in enumerate(todo):
+        usable = ~failed
+        prob = _Problem(model, x, flows, pair_valid, usable, iterations)
+        forward_first = a > 0
+        for sweep in range(sweeps):
+            order = [("fwd", range(a, b + 1)), ("bwd", range(b, a - 1, -1))]
+            if not forward_first:
+                order = order[::-1]
+            for p, (direction, frames) in enumerate(order):
+                first = sweep == 0 and p == 0
+                for i in frames:
+                    if first and direction == "fwd":
+                        x[i] = prob.solve(i, x, use_next=False, start=x[i - 1])
+                    elif first:
+                        x[i] = prob.solve(i, x, use_prev=False, start=x[i + 1])
+                    else:
+                        x[i] = prob.solve(i, x)
+                    usable[i] = True
+                    prob.usable = usable
+                if (a == 0 or b == f - 1) and not first:
+                    continue
+        failed[a:b + 1] = False
+        if progress is not None:
+            progress((n + 1) / len(todo), f"infilled frames {a}-{b}")
+    return x, failed
+
+
+def smooth(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, usable: np.ndarray, *,
+           sweeps: int, scheme: Literal["jacobi", "red_black"] = "jacobi", parity: int = 0, iterations: int = 6,
+           plate_weight: float = 1.0, self_weight: float = 0.0, prior_weight: float = 0.0,
+           prior: Tensor | None = None,
+           progress: Callable[[float, str], None] | None = None) -> Tensor:
+    """Sweeps of the per-frame plate-flow / self-flow solve (module docstring).
+
+    Args:
+        model, x, flows, pair_valid: as for `infill`.
+        usable: (F,) bool frames solved and used as neighbours (the others are kept).
+        sweeps: sweep count; scheme: "jacobi" or "red_black".
+        parity: absolute index of frame 0 modulo 2 (red-black colours by absolute frame).
+        iterations: LM iterations per frame solve.
+        plate_weight, self_weight, prior_weight: the energy's weights (`nodes.temporal.flowfit`).
+        prior: (F, 6 + K) values of the prior (None: the start values x).
+    Returns:
+        (F, 6 + K) float64.
+    """
+    x = x.clone()
+    prob = _Problem(model, x, flows, pair_valid, usable, iterations, plate_weight, self_weight,
+                    x.clone() if prior is None else prior, prior_weight)
+    frames = np.flatnonzero(np.asarray(usable, bool))
+    total = max(sweeps * len(frames), 1)
+    done = 0
+    for _ in range(sweeps):
+        if scheme == "jacobi":
+            old = x.clone()
+            for i in frames:
+                x[i] = prob.solve(int(i), old)
+                done += 1
+        else:
+            for colour in (0, 1):
+                for i in frames[(frames + parity) % 2 == colour]:
+                    x[i] = prob.solve(int(i), x)
+                    done += 1
+        if progress is not None:
+            progress(done / total, f"smoothed {done}/{total} frame solves")
+    return x
