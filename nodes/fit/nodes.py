@@ -405,7 +405,8 @@ class Expression(Node):
     appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
     pose = In(ParamSequence, doc="From fit.RigidPose.")
     fitted = Out(ParamSequence, doc="r00..r22, tx ty tz (cm), then one column per expression weight.")
-    mesh = Out(MeshSequence, doc="(F, V, 3) the fitted head, world frame, cm (NaN where failed).")
+    mesh = Out(MeshSequence, doc="(F, V, 3) the fitted head, world frame, cm (the unposed neutral where "
+                  "failed: read `failed`).")
     energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
     failed = Out(ParamSequence, doc="failed: 1 where no face or no rigid pose.")
 
@@ -418,7 +419,7 @@ class Expression(Node):
         rot = out["pose"][:, :9].reshape(-1, 3, 3)
         verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \
             + np.nan_to_num(out["pose"][:, None, 9:12])
-        verts[out["failed"]] = np.nan
+        verts[out["failed"]] = model.neutral  # meshes must be finite: failed frames hold the unposed neutral
         return {"fitted": ParamSequence(values, list(POSE_NAMES) + list(model.expression_names)),
                 "mesh": MeshSequence(verts.astype(np.float32), np.asarray(model.faces)),
                 "energy": ParamSequence(out["energy"][:, None], ["energy"]),

@@ -1,0 +1,68 @@
+"""The graph graphs/fit_video.json: valid; on skimage's astronaut the fitted model's projected
+68 points land on the face; a frame without a face is flagged, not fitted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nodegraph import Graph, registry, runner
+
+pytest.importorskip("torch")
+pytest.importorskip("tflite")
+data = pytest.importorskip("skimage.data")
+
+GRAPH = Path(__file__).resolve().parents[2] / "graphs" / "fit_video.json"
+
+
+def test_fit_video_graph_types_ports_params_exist():
+    spec = json.loads(GRAPH.read_text())
+    for node in spec["nodes"].values():
+        registry.get(node["type"]).Params(**node["params"])
+    for src, dst in spec["edges"]:
+        (a, out_port), (b, in_port) = src.split("."), dst.split(".")
+        src_cls, dst_cls = (registry.get(spec["nodes"][n]["type"]) for n in (a, b))
+        assert out_port in src_cls.outputs and in_port in dst_cls.inputs, (src, dst)
+        assert src_cls.outputs[out_port].type is dst_cls.inputs[in_port].type, (src, dst)
+    assert set(spec["parameters"]) == {"images", "camera", "output", "report"}
+    assert Graph.load(GRAPH).validate() == []
+
+
+def test_fit_video_graph_on_the_astronaut_and_a_face_free_frame(tmp_path):
+    from nodes.io.image import write_image
+    from nodes.landmarks.correspondence import inter_ocular_distance
+
+    face = data.astronaut()[:256, 64:320].astype(np.float32) / 255.0
+    empty = data.rocket()[:256, 128:384].astype(np.float32) / 255.0
+    for i, frame in enumerate([face, empty]):
+        write_image(tmp_path / f"plate.{i:04d}.png", frame, ["R", "G", "B"], "uint8")
+    out, report = tmp_path / "fit.npz", tmp_path / "report"
+    params = {"images": str(tmp_path / "plate.%04d.png"), "output": str(out), "report": str(report)}
+    graph = Graph.load(GRAPH)
+    result = runner.run(graph, parameters=params, scheduler="sync", cache=False)
+    assert result.exit_code == 0, result.summary()
+    with np.load(out) as fit:
+        assert fit["rotation"].shape == (2, 3, 3) and fit["translation"].shape == (2, 3)
+        assert fit["weights"].shape == (2, len(fit["expression_names"])) and fit["identity"].shape == (40,)
+        assert fit["failed"].tolist() == [False, True]
+        assert np.isnan(fit["rotation"][1]).all()
+        pts = fit["landmarks68"][0]
+    from nodegraph import ImageSequence, run_node
+    from nodes.landmarks import DetectFaces, FaceLandmarks
+    from nodes.landmarks.network import detect_faces
+
+    import torch
+
+    det = detect_faces(torch.as_tensor(face[None]))
+    x0, y0, x1, y1 = det.face_boxes[0]
+    assert ((pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)).all()
+    seq = ImageSequence(face[None], colour_space="srgb")
+    boxes = run_node(DetectFaces, images=seq)["boxes"]
+    network68 = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"].points[0]
+    err = np.linalg.norm(pts - network68, axis=-1).mean() / inter_ocular_distance(network68)
+    print("astronaut mean error / IOD", err)
+    assert err < 0.10
+    assert sorted(p.name for p in report.iterdir()) == ["fit.0000.png", "fit.0001.png"]
