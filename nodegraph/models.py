@@ -227,6 +227,9 @@ def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None
     os.close(fd)
     try:
         save_file(tensors, tmp, metadata=metadata)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # the usual permissions, not mkstemp's 0o600
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

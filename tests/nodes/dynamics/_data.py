@@ -47,7 +47,7 @@ def removal_model():
 @lru_cache(maxsize=None)
 def synthesis_model():
     data = synthesis_capture()
-    return run_node(TrainSynthesis, {"num_samples": 100, "epochs": 20},
+    return run_node(TrainSynthesis, {"num_samples": 100, "epochs": 12},
                     frames=range(data.capture.num_frames), captures=[data.capture],
                     quasistatic=[data.quasistatic], skulls=[data.skull], neutral=[data.neutral],
                     segments=[data.segments])
