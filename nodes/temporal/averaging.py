@@ -51,7 +51,7 @@ def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray,
     Returns:
         (F, D) float64 averaged parameters (other columns copied).
     """
-    v = np.asarray(values, np.float64)
+    v = np.nan_to_num(np.asarray(values, np.float64))
     f = len(v)
     ok = np.ones(f, bool) if failed is None else ~np.asarray(failed, bool)
     side = 0.5 * (1.0 - centre_weight)
@@ -64,7 +64,9 @@ def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray,
     out = v.copy()
     others = np.asarray(others, np.int64)
     out[:, others] = np.einsum("fn,fnd->fd", w, v[idx][:, :, others])
-    quats = quat_from_axis_angle(v[:, rotation])[idx]  # (F, 3, 4)
-    out[:, rotation] = axis_angle_from_quat(quaternion_mean(quats, w))
+    rotation = np.asarray(rotation, np.int64)
+    if len(rotation):
+        quats = quat_from_axis_angle(v[:, rotation])[idx]  # (F, 3, 4)
+        out[:, rotation] = axis_angle_from_quat(quaternion_mean(quats, w))
     out[~ok] = v[~ok]
     return out

@@ -3,9 +3,9 @@
 A fitted sequence is a `ParamSequence` whose columns are, by name (the layout of
 `nodes.fit`'s output):
 
-- `rot_x, rot_y, rot_z`: the head's rotation, axis-angle (axis times angle), radians,
-  model-to-world (`x_world = R(omega) x_model + t`);
-- `trans_x, trans_y, trans_z`: translation, cm, world frame;
+- the head's rotation, model-to-world (`x_world = R x_model + t`): either `r00 .. r22`
+  (row-major matrix, `nodes.fit`'s layout) or `rot_x, rot_y, rot_z` (axis-angle, radians);
+- translation, cm, world frame: `tx, ty, tz` (`nodes.fit`) or `trans_x, trans_y, trans_z`;
 - the expression weights by the model's shape names (ARKit names for the ICT head), unitless,
   in [0, 1]. Columns of the model's shapes that are absent are taken as 0; other columns pass
   through untouched.
@@ -22,12 +22,15 @@ import numpy as np
 
 from nodegraph import FaceModel, ParamSequence
 
-__all__ = ["ROTATION_NAMES", "TRANSLATION_NAMES", "RIGID_NAMES", "Layout", "params_layout", "make_params",
+__all__ = ["ROTATION_NAMES", "TRANSLATION_NAMES", "RIGID_NAMES", "MATRIX_NAMES", "FIT_TRANSLATION_NAMES", "Layout",
+           "params_layout", "make_params", "to_unknowns", "from_unknowns",
            "posed_vertices", "quat_from_axis_angle", "axis_angle_from_quat"]
 
 ROTATION_NAMES = ("rot_x", "rot_y", "rot_z")
 TRANSLATION_NAMES = ("trans_x", "trans_y", "trans_z")
 RIGID_NAMES = ROTATION_NAMES + TRANSLATION_NAMES
+MATRIX_NAMES = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+FIT_TRANSLATION_NAMES = ("tx", "ty", "tz")
 
 
 @dataclass(frozen=True)
@@ -35,14 +38,16 @@ class Layout:
     """Where the pose and the model's weights are in a `ParamSequence`'s columns.
 
     Attributes:
-        rotation: (3,) column indices of rot_x..rot_z.
-        translation: (3,) column indices of trans_x..trans_z.
+        rotation: (3,) column indices of rot_x..rot_z, or (9,) of r00..r22 (`matrix`).
+        translation: (3,) column indices of the translation.
         weights: (K,) column index of each model shape, -1 where the sequence lacks it.
+        matrix: the rotation is stored as a row-major matrix.
     """
 
     rotation: np.ndarray
     translation: np.ndarray
     weights: np.ndarray
+    matrix: bool = False
 
     @property
     def expression_columns(self) -> np.ndarray:
@@ -63,12 +68,52 @@ def params_layout(names: list[str], shape_names: list[str], where: str = "params
         ValueError: naming the missing rigid columns.
     """
     index = {n: i for i, n in enumerate(names)}
+    weights = np.array([index.get(n, -1) for n in shape_names], np.int64)
+    if all(n in index for n in MATRIX_NAMES + FIT_TRANSLATION_NAMES):
+        return Layout(np.array([index[n] for n in MATRIX_NAMES]), np.array([index[n] for n in FIT_TRANSLATION_NAMES]),
+                      weights, True)
     missing = [n for n in RIGID_NAMES if n not in index]
     if missing:
-        raise ValueError(f"{where}: expected columns {list(RIGID_NAMES)} (axis-angle radians, cm), "
-                         f"missing {missing} among {names[:10]}")
+        raise ValueError(f"{where}: expected columns r00..r22, tx, ty, tz (nodes.fit) or {list(RIGID_NAMES)} "
+                         f"(axis-angle radians, cm), missing {missing} among {names[:12]}")
     return Layout(np.array([index[n] for n in ROTATION_NAMES]), np.array([index[n] for n in TRANSLATION_NAMES]),
-                  np.array([index.get(n, -1) for n in shape_names]))
+                  weights)
+
+
+def to_unknowns(values: np.ndarray, layout: Layout) -> np.ndarray:
+    """(F, D) sequence values -> (F, 6 + K) float64 [axis-angle rad, cm, weights] (NaN and missing -> 0)."""
+    from scipy.spatial.transform import Rotation
+
+    v = np.nan_to_num(np.asarray(values, np.float64))
+    f, k = len(v), len(layout.weights)
+    x = np.zeros((f, 6 + k))
+    if layout.matrix:
+        rot = v[:, layout.rotation].reshape(f, 3, 3)
+        ok = np.abs(np.linalg.det(rot) - 1.0) < 0.1 if f else np.zeros(0, bool)
+        rot[~ok] = np.eye(3)
+        x[:, :3] = Rotation.from_matrix(rot).as_rotvec() if f else 0.0
+    else:
+        x[:, :3] = v[:, layout.rotation]
+    x[:, 3:6] = v[:, layout.translation]
+    have = layout.weights >= 0
+    x[:, 6:][:, have] = v[:, layout.weights[have]]
+    return x
+
+
+def from_unknowns(x: np.ndarray, values: np.ndarray, layout: Layout) -> np.ndarray:
+    """Write (F, 6 + K) unknowns back into a copy of the (F, D) sequence values (float32)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.array(values, np.float64)
+    f = len(out)
+    if layout.matrix:
+        out[:, layout.rotation] = Rotation.from_rotvec(x[:, :3]).as_matrix().reshape(f, 9) if f else 0.0
+    else:
+        out[:, layout.rotation] = x[:, :3]
+    out[:, layout.translation] = x[:, 3:6]
+    have = layout.weights >= 0
+    out[:, layout.weights[have]] = x[:, 6:][:, have]
+    return out.astype(np.float32)
 
 
 def make_params(rotation: np.ndarray, translation: np.ndarray, weights: np.ndarray, shape_names: list[str],

@@ -19,7 +19,7 @@ import numpy as np
 from nodegraph import Camera, FaceModel, FlowSequence, In, InputError, Node, NodeParams, Out, ParamSequence, Param
 from nodegraph import windowed
 
-from .layout import params_layout
+from .layout import from_unknowns, params_layout, to_unknowns
 
 __all__ = ["FlowInfill", "Average", "SelfFlow", "PlateFlow", "Hybrid", "MAX_GAP", "MAX_SWEEPS"]
 
@@ -74,25 +74,15 @@ class _FlowNode(Node):
         fm = FlowModel.build(model.neutral, model.expression_deltas, faces, camera.world_to_camera,
                              [camera.fx, camera.fy, camera.cx, camera.cy], camera.height, camera.width,
                              _shape_ids(model.expression_names, shapes), stride=stride, device=self.device)
-        v = params.values.astype(np.float64)
-        k = len(model.expression_names)
-        x = np.zeros((len(v), 6 + k))
-        x[:, :3] = v[:, layout.rotation]
-        x[:, 3:6] = v[:, layout.translation]
+        x = to_unknowns(params.values, layout)
         have = layout.weights >= 0
-        x[:, 6:][:, have] = v[:, layout.weights[have]]
         dev = self.device
         flows = torch.as_tensor(plate_flow.flow, dtype=torch.float64, device=dev)
         return fm, torch.as_tensor(x, device=dev), flows, layout, have
 
     @staticmethod
     def _pack(params: ParamSequence, x: Any, layout: Any, have: np.ndarray) -> ParamSequence:
-        x = x.cpu().numpy()
-        out = params.values.astype(np.float64).copy()
-        out[:, layout.rotation] = x[:, :3]
-        out[:, layout.translation] = x[:, 3:6]
-        out[:, layout.weights[have]] = x[:, 6:][:, have]
-        return ParamSequence(out.astype(np.float32), list(params.names))
+        return ParamSequence(from_unknowns(x.cpu().numpy(), params.values, layout), list(params.names))
 
 
 class _SolveParams(NodeParams):
@@ -114,7 +104,8 @@ class FlowInfill(_FlowNode):
                              "longer runs stay failed.")
         sweeps: int = Param(1, ge=1, le=4, description="Forward + backward passes over a run.")
 
-    fitted = In(ParamSequence, doc="Fitted parameters (rot_x..z rad, trans_x..z cm, weights by name).")
+    fitted = In(ParamSequence, doc="Fitted parameters (r00..r22 + tx ty tz cm as nodes.fit, or rot_x..z "
+                    "rad + trans_x..z cm; weights by shape name).")
     failed = In(ParamSequence, doc="(F, 1) 1 where the fit failed.")
     plate_flow = In(FlowSequence, doc="Optical flow of the plates, frame f -> f + 1 (flow.OpticalFlow).")
     model = In(FaceModel, doc="The face model fitted.")
@@ -227,7 +218,8 @@ class Average(Node):
         centre_weight: float = Param(0.5, gt=0, le=1, description="Weight of the frame itself; each "
                                      "neighbour gets (1 - c) / 2.")
 
-    fitted = In(ParamSequence, doc="Parameters (rot_x..z rad, trans_x..z cm, then other columns).")
+    fitted = In(ParamSequence, doc="Parameters (r00..r22 + tx ty tz cm, or rot_x..z rad + trans_x..z cm; "
+                "other columns averaged linearly).")
     failed = In(ParamSequence, optional=True, doc="(F, 1) 1 for frames to leave alone (and not use).")
     averaged = Out(ParamSequence, doc="Averaged parameters.")
 
@@ -238,7 +230,12 @@ class Average(Node):
             layout = params_layout(fitted.names, [], "fitted")
         except ValueError as err:
             raise InputError("fitted", str(err).removeprefix("fitted: ")) from err
-        others = np.setdiff1d(np.arange(fitted.values.shape[1]), layout.rotation)
-        out = average_params(fitted.values, layout.rotation, others, centre_weight=self.params.centre_weight,
+        x = to_unknowns(fitted.values, layout)
+        out = average_params(x, np.arange(3), np.arange(3, 6), centre_weight=self.params.centre_weight,
                              failed=_failed_mask(failed, fitted.num_frames))
+        others = np.setdiff1d(np.arange(fitted.values.shape[1]), np.r_[layout.rotation, layout.translation])
+        out = from_unknowns(out, fitted.values, layout)
+        avg = average_params(fitted.values, np.zeros(0, np.int64), others, centre_weight=self.params.centre_weight,
+                             failed=_failed_mask(failed, fitted.num_frames))
+        out[:, others] = avg[:, others]
         return {"averaged": ParamSequence(out.astype(np.float32), list(fitted.names))}
