@@ -1,0 +1,75 @@
+"""Bench of the deep-energy fit (nodes/fit): seconds per frame of detection + landmarks,
+appearance, rigid and expression stages, and the synthetic accuracy table.
+
+Usage: nice python bench/fit.py [--frames 50] [--size 160] [--seed 0]
+Runs on the CPU (this machine has no GPU); torch threads as torch chooses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from nodegraph import Camera, ImageSequence, run_node
+from nodes.fit import EstimateAppearance, EstimateIdentity, Expression, RigidPose
+from nodes.fit.synthetic import random_face_parameters, render_plates
+from nodes.io.face_model import load_face_model
+from nodes.landmarks import DetectFaces, FaceLandmarks
+
+
+def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    r = np.einsum("fij,fkj->fik", a, b)
+    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=50)
+    ap.add_argument("--size", type=int, default=160)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--identity", default="estimate", choices=["estimate", "mean"])
+    args = ap.parse_args()
+    model = load_face_model()
+    cam = Camera.from_fov(args.size, args.size, 30.0)
+    truth = random_face_parameters(model, args.frames, seed=args.seed, distance_cm=65.0)
+    plates = render_plates(model, [cam], truth)[0]
+    seq = ImageSequence(plates, colour_space="linear")
+    f = args.frames
+    times = {}
+    t = time.perf_counter()
+    det = run_node(DetectFaces, images=seq)
+    marks = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])["landmarks68"]
+    times["detection + landmarks"] = (time.perf_counter() - t) / f
+    t = time.perf_counter()
+    app = run_node(EstimateAppearance, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam, model=model)
+    times["appearance (once, per shot)"] = time.perf_counter() - t
+    common = dict(landmarks=[marks], boxes=[det["boxes"]], cameras=[cam], appearance=app["appearance"])
+    t = time.perf_counter()
+    ident = run_node(EstimateIdentity, {"mode": args.identity}, frames=range(f), model=model, **common)
+    times["identity (once, per shot)"] = time.perf_counter() - t
+    fitted = ident["fitted_model"]
+    t = time.perf_counter()
+    rigid = run_node(RigidPose, frames=range(f), model=fitted, **common)
+    times["rigid"] = (time.perf_counter() - t) / f
+    t = time.perf_counter()
+    expr = run_node(Expression, frames=range(f), model=fitted, pose=rigid["pose"], **common)
+    times["expression"] = (time.perf_counter() - t) / f
+    print(f"CPU (no GPU), {f} frames of {args.size}x{args.size}:")
+    for k, v in times.items():
+        print(f"  {k:30s} {v:7.3f} s" + ("" if "once" in k else " / frame"))
+    v = expr["fitted"].values
+    ok = expr["failed"].values[:, 0] == 0
+    j = model.expression_names.index("jawOpen")
+    rot = rotation_error_deg(v[ok, :9].reshape(-1, 3, 3), truth["rotation"][ok])
+    dt = np.abs(v[ok, 9:12] - truth["translation"][ok])
+    jaw = np.abs(v[ok, 12 + j] - truth["weights"][ok, j])
+    print(f"accuracy ({ok.sum()} fitted frames, identity={args.identity}): median / 90th percentile")
+    for name, e in (("rotation deg", rot), ("x cm", dt[:, 0]), ("y cm", dt[:, 1]), ("depth cm", dt[:, 2]),
+                    ("jawOpen", jaw)):
+        print(f"  {name:14s} {np.median(e):6.3f} / {np.percentile(e, 90):6.3f}")
+
+
+if __name__ == "__main__":
+    main()
