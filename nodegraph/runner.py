@@ -369,8 +369,13 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
         wanted = {key: {r: amount for r, amount in res.items() if r in offered}
                   for key, res in (resources or {}).items()}
         wanted = {key: res for key, res in wanted.items() if res}
-        futures = client.get(dsk, keys, sync=False, resources=wanted or None)
-        metas_f, values_f = futures[: len(meta_keys)], futures[len(meta_keys):]
+        # One submit per task (dsk is in dependency order): per-task resources are honoured this
+        # way, whereas `Client.get(resources=...)` applies one requirement to every task.
+        submitted: dict[str, Any] = {}
+        for key, (func, *args) in dsk.items():
+            args = [submitted[a] if isinstance(a, str) and a in submitted else a for a in args]
+            submitted[key] = client.submit(func, *args, key=key, pure=False, resources=wanted.get(key))
+        metas_f, values_f = [submitted[k] for k in meta_keys], [submitted[k] for k in value_keys]
         for future in as_completed(metas_f):
             reporter.update(future.result())
         metas = client.gather(metas_f)

@@ -295,6 +295,7 @@ def test_per_node_chunk_from_json():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(120)
 def test_gpu_tasks_go_to_the_gpu_worker_on_a_cluster():
     from distributed import Client, LocalCluster, Worker
 
@@ -307,12 +308,14 @@ def test_gpu_tasks_go_to_the_gpu_worker_on_a_cluster():
             gpu_worker = client.sync(add_gpu_worker)
             try:
                 g = Graph()
-                g.add("test.Ramp", id="ramp", num_frames=40)
-                g.add("test.Noise", id="noise")
-                g.connect("ramp.values", "noise.values")
+                g.add("test.Ramp", id="ramp", num_frames=10)
+                for i in range(6):  # without the resource, some would land on the other worker
+                    g.add("test.Noise", id=f"noise{i}")
+                    g.connect("ramp.values", f"noise{i}.values")
                 out = run(g, chunk=10, scheduler=client, cache=False, device="auto")
-                names = out.outputs["noise"]["noise"].names
-                assert names == [f"auto@{gpu_worker.address}"]
+                assert out.ok
+                where = {out.outputs[f"noise{i}"]["noise"].names[0] for i in range(6)}
+                assert where == {f"auto@{gpu_worker.address}"}
                 cpu_only = run(g, chunk=10, scheduler=client, cache=False, device="cpu")
                 assert cpu_only.ok
             finally:
