@@ -536,6 +536,8 @@ def run_node(node_type: type[Node] | Node, params: NodeParams | Mapping[str, Any
         count = None
         for name, port in node.inputs.items():
             value = inputs.get(name)
+            if port.many and isinstance(value, (list, tuple)) and value:
+                value = value[0]  # a list port: its values cover the same frames
             if port.per_frame and isinstance(value, PortType) and value.per_frame:
                 count = value.num_frames
                 break

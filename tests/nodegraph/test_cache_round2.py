@@ -320,3 +320,12 @@ def test_gpu_tasks_go_to_the_gpu_worker_on_a_cluster():
                 assert cpu_only.ok
             finally:
                 client.sync(gpu_worker.close)
+
+
+def test_run_node_counts_frames_from_a_list_port():
+    from nodegraph import ParamSequence, run_node
+    from nodegraph.testing import Weighted
+
+    values = [ParamSequence(np.ones((7, 1), np.float32), ["value"]) for _ in range(2)]
+    out = run_node(Weighted, values=values)["total"]
+    assert out.num_frames == 7 and float(out.values[0, 0]) == 3.0
