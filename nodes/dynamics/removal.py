@@ -29,7 +29,7 @@ from .features import (dynamic_offsets, moving_average_target, rotate_elementwis
                        segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
                        skull_descriptor, skull_landmarks, stabilize_points, window_gather,
                        window_reach)
-from .networks import predict, standardize_stats, train_mlp
+from .networks import predict, single_thread, standardize_stats, train_mlp
 from .propagate import interpolation_matrix, propagate_offsets
 
 __all__ = ["HALO", "region_vertices", "check_model", "model_edges", "TrainRemoval", "RemoveDynamics"]
@@ -196,9 +196,10 @@ def predict_removal(model: TorchModel, vertices: np.ndarray, skull: np.ndarray, 
     net = model.build("cpu")
     out = np.empty((len(b), len(ids), 3))
     mean, std = norm["input_mean"], norm["input_std"]
-    for f in range(len(b)):  # one call per frame: the same shapes whatever the chunk
-        rows = np.concatenate([np.broadcast_to(b[f], (len(ids), b.shape[1])), x[f]], axis=1)
-        out[f] = predict(net, (rows - mean) / std) * norm["output_std"] + norm["output_mean"]
+    with single_thread():
+        for f in range(len(b)):  # one call per frame: the same shapes whatever the chunk
+            rows = np.concatenate([np.broadcast_to(b[f], (len(ids), b.shape[1])), x[f]], axis=1)
+            out[f] = predict(net, (rows - mean) / std) * norm["output_std"] + norm["output_mean"]
     return out
 
 

@@ -23,7 +23,7 @@ from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, JsonValue, MeshSeque
 from .features import (apply_rigid_elementwise, dynamic_offsets, rotate_elementwise,
                        segment_margin_mask, select_samples, skull_descriptor, skull_landmarks,
                        stabilize_points, stretch_stencil, surface_stretch, window_reach)
-from .networks import predict, standardize_stats, train_mlp
+from .networks import predict, single_thread, standardize_stats, train_mlp
 from .propagate import interpolation_matrix, propagate_offsets
 from .removal import HALO, _check_lists, _fps, check_model, model_edges, region_vertices
 
@@ -49,8 +49,9 @@ def predict_synthesis(model: TorchModel, quasistatic: np.ndarray, skull: np.ndar
     rows = (rows - norm["input_mean"]) / norm["input_std"]
     n = len(norm["sample_ids"])
     out = np.empty((len(rows), n, 3))
-    for f in range(len(rows)):  # one call per frame: the same shapes whatever the chunk
-        out[f] = (predict(net, rows[f:f + 1])[0] * norm["output_std"] + norm["output_mean"]).reshape(n, 3)
+    with single_thread():
+        for f in range(len(rows)):  # one call per frame: the same shapes whatever the chunk
+            out[f] = (predict(net, rows[f:f + 1])[0] * norm["output_std"] + norm["output_mean"]).reshape(n, 3)
     return out
 
 
