@@ -11,6 +11,7 @@ from typing import Any, Callable
 
 import pytest
 
+from nodegraph import registry
 from nodegraph.cli import main
 
 GRAPHS = sorted(Path(__file__).resolve().parents[1].glob("graphs/*.json"))
@@ -85,8 +86,14 @@ def _cycle(data: dict, rng: random.Random) -> str:
     return ""
 
 
+def _is_list_port(data: dict, ref: str) -> bool:
+    node, _, port = ref.rpartition(".")
+    decl = registry.get(data["nodes"][node]["type"]).inputs.get(port)
+    return bool(decl is not None and decl.many)
+
+
 def _doubled_input(data: dict, rng: random.Random) -> str:
-    singles = [e for e in data["edges"] if not e[1].endswith(".estimates")]
+    singles = [e for e in data["edges"] if not _is_list_port(data, e[1])]
     src, dst = rng.choice(singles)
     data["edges"].append([src, dst])
     return dst.split(".")[0]
