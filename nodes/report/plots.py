@@ -207,9 +207,9 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
             edges = np.linspace(-hi, hi, bins + 1)
             for k, s in series.items():
                 mad = spread.world[row, c] if k == "world" else spread.skull[k][row, c]
-                ax.hist(s, bins=edges, histtype="stepfilled" if k == "world" else "step",
-                        color="0.7" if k == "world" else None, linewidth=1.2,
-                        label=f"{k} (MAD {mad:.3f} cm)")
+                counts, _ = np.histogram(s, bins=edges)  # stairs: one artist, far cheaper than hist's
+                ax.stairs(counts, edges, fill=k == "world", color="0.7" if k == "world" else None,
+                          linewidth=1.2, label=f"{k} (MAD {mad:.3f} cm)")
             ax.set_title(f"vertex {int(names[row])}, {_AXES[c]} - mean (cm)", fontsize="small")
             ax.legend(loc="upper right", fontsize="x-small")
     axes[-1, 0].set_ylabel("frames")
