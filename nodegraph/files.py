@@ -7,12 +7,12 @@ import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, Sequence
+from typing import Any, Mapping, TYPE_CHECKING, Iterator, Sequence
 
 if TYPE_CHECKING:
     from .types import Files
 
-__all__ = ["write_text_atomic", "file_sha256", "atomic_path", "files_value"]
+__all__ = ["write_text_atomic", "write_npz_atomic", "file_sha256", "atomic_path", "files_value"]
 
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
 
@@ -100,3 +100,17 @@ def files_value(paths: Sequence[str | os.PathLike]) -> Files:
     from .types import Files
 
     return Files(paths=[str(p) for p in paths], sha256=[file_sha256(p, memo=False) for p in paths])
+
+
+def write_npz_atomic(path: str | os.PathLike, arrays: Mapping[str, Any]) -> None:
+    """Write `arrays` as an uncompressed .npz through a temp file and a rename (`atomic_path`).
+
+    Raises:
+        ValueError: `path` does not end in .npz (the message names the path).
+    """
+    import numpy as np
+
+    if Path(path).suffix.lower() != ".npz":
+        raise ValueError(f"expected a file name ending in .npz, found '{os.fspath(path)}'")
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)

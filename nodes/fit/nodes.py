@@ -26,7 +26,7 @@ import numpy as np
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Camera, FaceModel, Files, ImageSequence, In, InputError, JsonValue,
                        Landmarks2D, MeshSequence, Node, NodeParams, Out, Param, ParamSequence)
-from nodegraph.files import atomic_path, files_value
+from nodegraph.files import atomic_path, files_value, write_npz_atomic
 
 __all__ = ["DEFAULT_FOV_DEG", "POSE_NAMES", "PlateCamera", "EstimateAppearance", "EstimateIdentity", "RigidPose",
            "Expression", "FlagFailures", "SaveFit", "FitReport"]
@@ -496,9 +496,7 @@ class SaveFit(Node):
                   "failed": flags.values[:, 0] > 0.5, "energy": energy.values[:, 0].astype(np.float32),
                   "landmarks68": pts.astype(np.float32),
                   "frames": np.arange(self.frames.start, self.frames.stop, dtype=np.int64)}
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **arrays)
+        write_npz_atomic(path, arrays)
         return {"files": files_value([path])}
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param,
                        ParamSequence, RigidSequence)
-from nodegraph.files import atomic_path, files_value
+from nodegraph.files import atomic_path, files_value, write_npz_atomic
 
 from ._files import (check_frame_range, format_of, frame_where, npz_keys, npz_shape, read_npz_array,
                      read_npz_rows)
@@ -133,9 +133,6 @@ def _write_json(path: str, data: dict[str, Any]) -> None:
         fh.write("\n")
 
 
-def _write_npz(path: str, arrays: dict[str, np.ndarray]) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
 
 
 # -- rigid ----------------------------------------------------------------------------------
@@ -197,7 +194,7 @@ def save_rigid_sequence(path: str, rigid: RigidSequence) -> None:
     if fmt == "json":
         _write_json(path, {"convention": CONVENTION, "matrices": matrices.tolist()})
     else:
-        _write_npz(path, {"matrices": matrices})
+        write_npz_atomic(path, {"matrices": matrices})
 
 
 # -- params ---------------------------------------------------------------------------------
@@ -264,7 +261,7 @@ def save_param_sequence(path: str, params: ParamSequence) -> None:
         _write_json(path, {"names": list(params.names),
                            "values": values.astype(np.float64).tolist()})
     else:
-        _write_npz(path, {"values": values, "names": np.asarray(list(params.names), dtype=str)})
+        write_npz_atomic(path, {"values": values, "names": np.asarray(list(params.names), dtype=str)})
 
 
 def sequence_frame_count(path: str, npz_key: str | None = None) -> int:

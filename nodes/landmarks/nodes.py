@@ -25,7 +25,7 @@ import numpy as np
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, ImageSequence, In, InputError, Landmarks2D, Node, NodeParams,
                        Out, Param, ParamSequence, TorchModel)
-from nodegraph.files import atomic_path, files_value
+from nodegraph.files import atomic_path, files_value, write_npz_atomic
 
 from .correspondence import MEDIAPIPE_TO_68
 
@@ -228,7 +228,7 @@ class SaveLandmarks(Node):
     def run(self, boxes: ParamSequence, landmarks68: Landmarks2D, landmarks468: Landmarks2D,
             presence: ParamSequence, failed: ParamSequence) -> dict[str, Files]:
         path = self.params.path
-        if not path.lower().endswith(".npz"):
+        if not path.lower().endswith(".npz"):  # before any work: the write checks it too
             raise InputError("path", f"expected a file name ending in .npz, found '{path}'")
         for port, value, shape in (("boxes", boxes.values, (4,)), ("landmarks68", landmarks68.points, (68, 2)),
                                    ("landmarks468", landmarks468.points, (468, 2)),
@@ -241,9 +241,7 @@ class SaveLandmarks(Node):
                   "presence": presence.values[:, 0].astype(np.float32),
                   "failed": failed.values[:, 0] > 0.5,
                   "frames": np.arange(self.frames.start, self.frames.stop, dtype=np.int64)}
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **arrays)
+        write_npz_atomic(path, arrays)
         return {"files": files_value([path])}
 
 
