@@ -316,9 +316,9 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None, cache: Cache | Non
     if last.get("files") != now["files"]:
         reasons.append("input files changed")
     old_inputs, new_inputs = last.get("inputs", {}), now["inputs"]
-    for port in sorted(set(old_inputs) | set(new_inputs)):
-        if old_inputs.get(port) != new_inputs.get(port):
-            reasons.append(f"upstream '{port.partition('#')[0]}' changed")
+    changed_ports = [port.partition("#")[0] for port in sorted(set(old_inputs) | set(new_inputs))
+                     if old_inputs.get(port) != new_inputs.get(port)]
+    reasons.extend(f"upstream '{port}' changed" for port in dict.fromkeys(changed_ports))
     if last.get("frames") != now["frames"] and not reasons:
         reasons.append(f"frames changed ({last.get('frames')} -> {now['frames']})")
     if not reasons and task.writes and task.stale_files:
