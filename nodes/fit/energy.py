@@ -57,7 +57,7 @@ EYELIDS_68 = np.array([37, 38, 40, 41, 43, 44, 46, 47])
 MOUTH_68 = np.arange(48, 68)
 
 
-def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0) -> np.ndarray:
+def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0, jaw: float = 1.0) -> np.ndarray:
     """Per-landmark weights W (the paper's weight matrix, diagonal) of one stage.
 
     Args:
@@ -66,18 +66,22 @@ def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0) 
             reads them poorly on renders, and blinks are not fitted.
         mouth: weight of the lip points 48-67 (the paper weights them up in the first
             expression stage).
+        jaw: weight of the jaw contour points 0-16 in "all" (they slide along the silhouette
+            instead of following the surface, so the anchored solve models them worst).
     Returns:
         (68,) float32 weights.
     """
     w = np.ones(68, np.float32)
     w[EYELIDS_68] = eyelid
     w[MOUTH_68] = mouth
+    w[JAW_68] = jaw
     if set_name == "non_jaw":
         w[JAW_68] = 0.0
     elif set_name == "jaw":
         keep = np.zeros(68, bool)
         keep[JAW_68] = True
         w[~keep] = 0.0
+        w[JAW_68] = 1.0
     elif set_name != "all":
         raise ValueError(f"set_name: expected 'non_jaw', 'jaw' or 'all', found {set_name!r}")
     return w

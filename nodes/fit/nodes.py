@@ -119,8 +119,8 @@ def _state_from(values: np.ndarray, weights: np.ndarray, device: str) -> Any:
 
 
 class _FitParams(NodeParams):
-    iterations: int = Param(20, ge=1, le=500, description="L-BFGS iterations per stage.")
-    rounds: int = Param(2, ge=1, le=10, description="Outer rounds (render, read with the network, anchor, "
+    iterations: int = Param(20, ge=1, le=500, description="Levenberg-Marquardt iterations per stage (at most).")
+    rounds: int = Param(4, ge=1, le=10, description="Outer rounds (render, read with the network, anchor, "
                         "run the stages).")
     edge_weight: float = Param(1.0, ge=0, description="mu of the edge-preserving term on consecutive landmark "
                                "differences.")
@@ -227,7 +227,7 @@ class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
     type_name = "fit.EstimateAppearance"
-    version = 1
+    version = 2
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -238,7 +238,10 @@ class EstimateAppearance(Node):
                            "detected frame with the least open mouth.")
         prior_weight: float = Param(1.0, ge=0, description="Pull of each vertex's albedo toward the default "
                                     "(pixels' worth of evidence).")
-        iterations: int = Param(20, ge=1, le=500, description="L-BFGS iterations per rigid stage.")
+        iterations: int = Param(20, ge=1, le=500, description="Levenberg-Marquardt iterations per rigid stage.")
+        rounds: int = Param(4, ge=1, le=10, description="Outer rounds of the rigid fit (see fit.RigidPose).")
+        passes: int = Param(2, ge=1, le=5, description="Alternations of rigid pose (with the current "
+                            "appearance) and appearance (at that pose).")
 
     images = In(ImageSequence, doc="Plate of the first camera.")
     landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks of the first camera, pixels.")
@@ -268,16 +271,21 @@ class EstimateAppearance(Node):
             raise InputError("landmarks", f"expected a face in frame {p.frame}, found none")
         fm = _fit_model(model, None, self.device)
         views = _views([landmarks], [boxes], [camera], self.device, select=np.array([frame]))
-        state, _, _ = fit_stages(fm, views, initial_pose(fm, views), RIGID_STAGES, load_face_mesh(self.device),
-                                 outer=2, iterations=p.iterations)
-        verts = fm.vertices(state.weights, state.rot, state.trans)[0].detach().cpu().numpy()
+        net = load_face_mesh(self.device)
         plate = images.to_linear()
         idx = plate.colour_channels()
         pixels = plate.pixels[frame][..., idx[:3]] if len(idx) >= 3 else np.repeat(plate.pixels[frame][..., idx[:1]], 3, -1)
         dist = np.array([camera.k1, camera.k2]) if (camera.k1 or camera.k2) else None
-        app = estimate_appearance(pixels, verts, fm.faces, camera.world_to_camera,
-                                  np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
-                                  distortion=dist, prior_weight=p.prior_weight)
+        state = initial_pose(fm, views)
+        for n in range(p.passes):  # alternate: pose with the current appearance, then appearance at that pose
+            state, _, _ = fit_stages(fm, views, state, RIGID_STAGES, net, outer=p.rounds, iterations=p.iterations,
+                                     first_outer_on_landmarks=n == 0)
+            verts = fm.vertices(state.weights, state.rot, state.trans)[0].detach().cpu().numpy()
+            app = estimate_appearance(pixels, verts, fm.faces, camera.world_to_camera,
+                                      np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
+                                      distortion=dist, prior_weight=p.prior_weight)
+            fm = _fit_model(model, JsonValue(appearance_json(app.albedo, app.sh, tuple(app.background), hidden)),
+                            self.device)
         value = appearance_json(app.albedo, app.sh, tuple(app.background), hidden)
         value["frame"] = int(frame + self.frames.start)
         return {"appearance": JsonValue(value)}
@@ -287,7 +295,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 1
+    version = 2
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -362,7 +370,7 @@ class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 1
+    version = 2
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _FitParams
@@ -393,7 +401,7 @@ class Expression(Node):
     """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
 
     type_name = "fit.Expression"
-    version = 1
+    version = 2
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _ExpressionParams

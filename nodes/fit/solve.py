@@ -35,7 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .energy import axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points, project_views
+from .energy import (EDGES_68, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
+                     project_views)
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, crop_to_image, landmark_anchors,
                     network_points, render_crops)
 
@@ -56,6 +57,7 @@ class Stage:
         shapes: indices of the expression shapes that move.
         landmarks: "non_jaw", "jaw" or "all" (`nodes.fit.energy.landmark_weights`).
         mouth_weight: weight of the lip points 48-67.
+        jaw_weight: weight of the jaw contour points 0-16 when `landmarks` is "all".
     """
 
     name: str
@@ -64,6 +66,7 @@ class Stage:
     shapes: tuple[int, ...] = ()
     landmarks: str = "all"
     mouth_weight: float = 1.0
+    jaw_weight: float = 1.0
 
 
 RIGID_STAGES = (
@@ -148,10 +151,57 @@ def predicted_points(model: FitModel, views: FitViews, anchors: Anchors, state: 
     return project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
 
 
+def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: Anchors, rot0: Tensor,
+                     base_weights: Tensor, shapes: Tensor, w_lm: Tensor, *, prior: float, edge_weight: float,
+                     rigid_prior: PoseState | None, rigid_prior_weight: float) -> Callable[[Tensor], Tensor]:
+    """A stage's energy as a sum of squares: x (B, 6 + S) -> residuals (B, M).
+
+    x = [omega (3), t (3) cm, the S active weights]; `R = exp([omega]) rot0`. The residuals are,
+    in order: data (C*68*2), edges (C*E*2, if mu > 0), prior (S), bound penalty (S), rigid
+    prior (12, if any), so that `sum r^2` is `landmark_energy` + the prior + the bound
+    penalty + the rigid prior of `solve_stage`.
+    """
+    a, b = EDGES_68[:, 0], EDGES_68[:, 1]
+    scale = views.scale
+    sw = w_lm.clamp_min(0).sqrt()
+    ew = ((w_lm[a] > 0) & (w_lm[b] > 0)).to(w_lm.dtype) * float(edge_weight) ** 0.5
+    n_w = len(shapes)
+    use_rigid_prior = rigid_prior is not None and rigid_prior_weight > 0
+
+    def fn(x: Tensor) -> Tensor:
+        rot = axis_angle_to_rotmat(x[:, :3]) @ rot0
+        trans = x[:, 3:6]
+        active = x[:, 6:]
+        weights = base_weights.index_copy(1, shapes, active) if n_w else base_weights
+        pts = posed_anchor_points(neutral, deltas, weights, rot, trans)
+        pred = project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
+        r = (views.target - pred) * scale[..., None, None]  # (B, C, 68, 2)
+        parts = [(r * sw[:, None]).flatten(1)]
+        if edge_weight > 0:
+            parts.append(((r[:, :, b] - r[:, :, a]) * ew[:, None]).flatten(1))
+        if n_w:
+            parts.append(active * float(prior) ** 0.5)
+            parts.append(((-active).clamp_min(0) + (active - 1).clamp_min(0)) * BOUND_PENALTY ** 0.5)
+        if use_rigid_prior:
+            k = float(rigid_prior_weight) ** 0.5
+            parts.append((trans - rigid_prior.trans) * k)
+            parts.append((rot - rigid_prior.rot).flatten(1) * (k / 2 ** 0.5))
+        return torch.cat(parts, 1)
+
+    return fn
+
+
 def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors, state: PoseState, *,
                 prior: float, edge_weight: float, eyelid_weight: float, iterations: int,
                 rigid_prior: PoseState | None = None, rigid_prior_weight: float = 0.0) -> tuple[PoseState, Tensor]:
     """Minimize one stage's energy over its unknowns (all frames at once; frames are independent).
+
+    The energy is a sum of squares (`_stage_residuals`), minimized per frame by
+    Levenberg-Marquardt: Jacobian by forward-mode autodiff, damping `lambda diag(J^T J)`
+    (lambda x 0.3 after a step that lowers the frame's energy, x 10 and retry otherwise), the
+    rotation re-linearized after every accepted step (`R <- exp([omega]) R`). Much cheaper than
+    L-BFGS here: the unknowns are few (6 + the active shapes) and each iteration costs one
+    Jacobian and one or two evaluations.
 
     Args:
         stage: the unknowns and landmarks.
@@ -160,7 +210,8 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         prior: lambda of the L2 prior on the active weights (256-crop pixel^2 per unit weight^2).
         edge_weight: mu of the edge term.
         eyelid_weight: weight of the eyelid points.
-        iterations: L-BFGS iterations.
+        iterations: at most this many Levenberg-Marquardt iterations; a frame stops when a step
+            lowers its energy by less than 1e-6 relative.
         rigid_prior: pose the rigid unknowns are pulled toward in expression stages, with
             `rigid_prior_weight` (per radian^2 and cm^2).
     Returns:
@@ -169,47 +220,68 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     neutral, deltas = _anchored(model, anchors)
     dev, dt = neutral.device, neutral.dtype
     b = state.rot.shape[0]
-    w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight)
+    w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight, jaw=stage.jaw_weight)
     w_lm = torch.as_tensor(w_np, dtype=dt, device=dev)
-    scale = views.scale
     shapes = torch.as_tensor(list(stage.shapes), dtype=torch.long, device=dev)
-    omega = torch.zeros(b, 3, dtype=dt, device=dev, requires_grad=stage.rotation)
-    trans = state.trans.detach().clone().requires_grad_(stage.translation)
-    active = state.weights.detach()[:, shapes].clone().requires_grad_(len(stage.shapes) > 0)
-    rot0 = state.rot.detach()
+    free = torch.as_tensor([stage.rotation] * 3 + [stage.translation] * 3 + [True] * len(stage.shapes), device=dev)
+    free_idx = torch.nonzero(free)[:, 0]
+    n_p = len(free_idx)
+    rot, trans, weights = state.rot.detach(), state.trans.detach(), state.weights.detach()
+    eye = torch.eye(n_p, dtype=dt, device=dev)
 
-    def evaluate() -> tuple[Tensor, PoseState]:
-        rot = axis_angle_to_rotmat(omega) @ rot0 if stage.rotation else rot0
-        weights = state.weights.detach()
-        if len(stage.shapes):
-            weights = weights.index_copy(1, shapes, active)
-        pts = posed_anchor_points(neutral, deltas, weights, rot, trans)
-        pred = project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
-        e = landmark_energy(pred, views.target, scale, w_lm, edge_weight=edge_weight)
-        if len(stage.shapes):
-            e = e + prior * (active * active).sum(-1)
-            e = e + BOUND_PENALTY * ((-active).clamp_min(0) ** 2 + (active - 1).clamp_min(0) ** 2).sum(-1)
-        if rigid_prior is not None and rigid_prior_weight > 0 and (stage.rotation or stage.translation):
-            e = e + rigid_prior_weight * ((trans - rigid_prior.trans) ** 2).sum(-1)
-            e = e + rigid_prior_weight * ((rot - rigid_prior.rot) ** 2).sum((-1, -2)) / 2
-        return e, PoseState(rot, trans, weights)
+    def full(x_free: Tensor, x_fixed: Tensor) -> Tensor:
+        return x_fixed.index_copy(1, free_idx, x_free) if n_p else x_fixed
 
-    params = [p for p in (omega, trans, active) if p.requires_grad]
-    if params and iterations > 0:
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20,
-                                line_search_fn="strong_wolfe", tolerance_grad=1e-7, tolerance_change=1e-10)
+    def linearize(rot: Tensor, trans: Tensor, weights: Tensor) -> tuple[Callable[[Tensor], Tensor], Tensor]:
+        fn = _stage_residuals(neutral, deltas, views, anchors, rot, weights, shapes, w_lm, prior=prior,
+                              edge_weight=edge_weight, rigid_prior=rigid_prior,
+                              rigid_prior_weight=rigid_prior_weight)
+        x0 = torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans, weights[:, shapes]], 1)
+        return (lambda xf: fn(full(xf, x0))), x0[:, free_idx]
 
-        def closure() -> Tensor:
-            opt.zero_grad()
-            total = evaluate()[0].sum()
-            total.backward()
-            return total
+    def state_at(rot: Tensor, x: Tensor) -> PoseState:
+        r = axis_angle_to_rotmat(x[:, :3]) @ rot
+        w = weights.index_copy(1, shapes, x[:, 6:]) if len(stage.shapes) else weights
+        return PoseState(r, x[:, 3:6], w)
 
-        opt.step(closure)
     with torch.no_grad():
-        e, new = evaluate()
-        new = PoseState(new.rot.detach(), new.trans.detach(), new.weights.detach().clamp(0.0, 1.0))
-    return new, e.detach()
+        fn, x = linearize(rot, trans, weights)
+        r = fn(x)
+        cost = (r * r).sum(1)
+        lam = torch.full((b,), 1e-3, dtype=dt, device=dev)
+        running = torch.ones(b, dtype=torch.bool, device=dev)
+        for _ in range(iterations if n_p else 0):
+            jac = torch.func.jacfwd(lambda d: fn(x + d[None]))(torch.zeros(n_p, dtype=dt, device=dev))  # (B, M, P)
+            jtj = jac.transpose(1, 2) @ jac
+            jtr = (jac.transpose(1, 2) @ r[..., None])[..., 0]
+            diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
+            for _try in range(6):
+                step = -torch.linalg.solve(jtj + (lam[:, None] * diag)[:, :, None] * eye + 1e-9 * eye,
+                                           jtr[..., None])[..., 0]
+                r_new = fn(x + step)
+                cost_new = (r_new * r_new).sum(1)
+                better = (cost_new < cost) & running
+                lam = torch.where(better, lam * 0.3, torch.where(running, lam * 10.0, lam)).clamp(1e-7, 1e8)
+                if better.any():
+                    break
+            if not better.any():
+                break
+            gain = (cost - cost_new) / cost.clamp_min(1e-12)
+            running = running & ~(better & (gain < 1e-6))
+            new = state_at(rot, full(x + step, torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans,
+                                                          weights[:, shapes]], 1)))
+            rot = torch.where(better[:, None, None], new.rot, rot)
+            trans = torch.where(better[:, None], new.trans, trans)
+            weights = torch.where(better[:, None], new.weights, weights)
+            r = torch.where(better[:, None], r_new, r)
+            cost = torch.where(better, cost_new, cost)
+            if not running.any():
+                break
+            fn, x = linearize(rot, trans, weights)
+        drop = len(stage.shapes) + (12 if rigid_prior is not None and rigid_prior_weight > 0 else 0)
+        kept = r[:, :r.shape[1] - drop]  # data + edges + prior (not the bound and rigid-prior terms)
+        e = (kept * kept).sum(1)
+    return PoseState(rot, trans, weights.clamp(0.0, 1.0)), e
 
 
 def _render_anchors(model: FitModel, views: FitViews, state: PoseState, network: torch.nn.Module,
@@ -294,7 +366,8 @@ def refine_backprop(model: FitModel, views: FitViews, state: PoseState, stage: S
     size = int(network.input_size)
     b, c = views.seen.shape
     dt, dev = state.trans.dtype, state.trans.device
-    w_lm = torch.as_tensor(landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight),
+    w_lm = torch.as_tensor(landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight,
+                                            jaw=stage.jaw_weight),
                            dtype=dt, device=dev)
     shapes = torch.as_tensor(list(stage.shapes), dtype=torch.long, device=dev)
     omega = torch.zeros(b, 3, dtype=dt, device=dev, requires_grad=True)
