@@ -1,7 +1,7 @@
 """Bench of the deep-energy fit (nodes/fit): seconds per frame of detection + landmarks,
 appearance, rigid and expression stages, and the synthetic accuracy table.
 
-Usage: nice python bench/fit.py [--frames 50] [--size 160] [--seed 0]
+Usage: nice python bench/fit.py [--frames 50] [--size 256] [--seed 0] [--rounds 4]
 Runs on the CPU (this machine has no GPU); torch threads as torch chooses.
 """
 
@@ -27,8 +27,9 @@ def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--size", type=int, default=160)
+    ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--identity", default="estimate", choices=["estimate", "mean"])
     args = ap.parse_args()
     model = load_face_model()
@@ -51,10 +52,10 @@ def main() -> None:
     times["identity (once, per shot)"] = time.perf_counter() - t
     fitted = ident["fitted_model"]
     t = time.perf_counter()
-    rigid = run_node(RigidPose, frames=range(f), model=fitted, **common)
+    rigid = run_node(RigidPose, {"rounds": args.rounds}, frames=range(f), model=fitted, **common)
     times["rigid"] = (time.perf_counter() - t) / f
     t = time.perf_counter()
-    expr = run_node(Expression, frames=range(f), model=fitted, pose=rigid["pose"], **common)
+    expr = run_node(Expression, {"rounds": args.rounds}, frames=range(f), model=fitted, pose=rigid["pose"], **common)
     times["expression"] = (time.perf_counter() - t) / f
     print(f"CPU (no GPU), {f} frames of {args.size}x{args.size}:")
     for k, v in times.items():

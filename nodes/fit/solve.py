@@ -2,7 +2,7 @@
 over the frames of a chunk.
 
 Each stage minimizes `nodes.fit.energy.landmark_energy` (+ the L2 prior on the active
-shapes) over a subset of the unknowns with L-BFGS (strong-Wolfe line search), starting from
+shapes) over a subset of the unknowns with Levenberg-Marquardt per frame, starting from
 the previous stage:
 
 - rigid (`RIGID_STAGES`): translation on the non-jaw landmarks; rotation and translation on

@@ -18,7 +18,7 @@ from nodes.io.face_model import load_face_model  # noqa: E402
 from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
 
 FRAMES = 4
-SIZE = 160
+SIZE = 256
 DISTANCE = 65.0
 
 
@@ -45,7 +45,7 @@ def scene():
     return model, [cam0, cam1], truth, views
 
 
-def _fit(scene, cameras: int, identity_mode: str = "estimate", rounds: int = 2) -> dict:
+def _fit(scene, cameras: int, identity_mode: str = "estimate", rounds: int = 4) -> dict:
     model, cams, truth, views = scene
     seq, boxes, marks = views[0]
     app = run_node(EstimateAppearance, images=seq, landmarks=marks, boxes=boxes, camera=cams[0], model=model)
@@ -55,13 +55,17 @@ def _fit(scene, cameras: int, identity_mode: str = "estimate", rounds: int = 2) 
                      cameras=cams[:cameras], model=model, appearance=app["appearance"])
     fitted = ident["fitted_model"]
     common = dict(landmarks=lms, boxes=bxs, cameras=cams[:cameras], model=fitted, appearance=app["appearance"])
+    import time
+
+    t = time.perf_counter()
     rigid = run_node(RigidPose, {"rounds": rounds}, frames=range(FRAMES), **common)
     expr = run_node(Expression, {"rounds": rounds}, frames=range(FRAMES), pose=rigid["pose"], **common)
+    seconds = time.perf_counter() - t
     v = expr["fitted"].values
     j = model.expression_names.index("jawOpen")
     return {"rot": rotation_error_deg(v[:, :9].reshape(-1, 3, 3), truth["rotation"]),
             "trans": v[:, 9:12] - truth["translation"], "jaw": np.abs(v[:, 12 + j] - truth["weights"][:, j]),
-            "expr": expr, "rigid": rigid, "identity": ident["identity"].value["identity"]}
+            "expr": expr, "rigid": rigid, "identity": ident["identity"].value["identity"], "seconds": seconds}
 
 
 @pytest.fixture(scope="module")
@@ -69,12 +73,18 @@ def single(scene):
     return _fit(scene, 1)
 
 
+@pytest.fixture(scope="module")
+def two(scene):
+    return _fit(scene, 2)
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 11 targets not met yet: measured median rotation ~4 deg, depth ~5 cm with the "
-                   "estimated identity; at the true pose the energy is above the fitted one (appearance / "
-                   "network bias), so the minimum is off the truth", strict=False)
+@pytest.mark.xfail(reason="issue 11 rotation target not met: measured (256 px, seed 3, 4 frames, estimated identity "
+                   "and appearance) median rotation 4.1 deg (per frame 3.1 5.4 2.7 5.2), x/y 0.47/0.51 cm, jaw 0.13; "
+                   "with the true identity and appearance 1.8-2.8 deg; the noise floor of the plate landmarks at "
+                   "this size is ~1 deg", strict=False)
 def test_rigid_and_jaw_accuracy_one_camera(single):
-    print("rot", single["rot"], "trans", single["trans"], "jaw", single["jaw"])
+    print("rot", single["rot"], "time", single["seconds"], "trans", single["trans"], "jaw", single["jaw"])
     assert np.median(single["rot"]) < 1.5
     assert np.median(np.abs(single["trans"][:, :2])) < 0.5
     assert np.median(single["jaw"]) < 0.15
@@ -82,12 +92,26 @@ def test_rigid_and_jaw_accuracy_one_camera(single):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 11: not yet measured to pass (see above)", strict=False)
-def test_two_cameras_halve_the_depth_error(scene, single):
-    two = _fit(scene, 2)
+def test_one_camera_translation_jaw_and_bounded_rotation(single):
+    """What the one-camera fit meets now (regression guard), looser than the issue's targets."""
+    assert (single["expr"]["failed"].values == 0).all()
+    assert np.median(np.abs(single["trans"][:, :2])) < 0.75
+    assert np.median(single["jaw"]) < 0.2
+    assert np.median(single["rot"]) < 6.0
+
+
+@pytest.mark.slow
+def test_two_cameras_halve_the_depth_error(single, two):
     d1, d2 = np.median(np.abs(single["trans"][:, 2])), np.median(np.abs(two["trans"][:, 2]))
     print("depth one camera", d1, "two", d2, "rot", two["rot"])
     assert d2 * 2 <= d1 or d2 < 0.1
+    assert np.median(np.abs(two["trans"][:, :2])) < 0.75
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="issue 11 rotation target not met with two cameras: measured median 4.3 deg (per frame "
+                   "2.9 5.8 1.2 7.9)", strict=False)
+def test_two_cameras_rotation(two):
     assert np.median(two["rot"]) < 1.5
 
 
