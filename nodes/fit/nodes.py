@@ -119,7 +119,7 @@ def _state_from(values: np.ndarray, weights: np.ndarray, device: str) -> Any:
 
 
 class _FitParams(NodeParams):
-    iterations: int = Param(20, ge=1, le=500, description="Levenberg-Marquardt iterations per stage (at most).")
+    iterations: int = Param(10, ge=1, le=500, description="Levenberg-Marquardt iterations per stage (at most).")
     rounds: int = Param(4, ge=1, le=10, description="Outer rounds (render, read with the network, anchor, "
                         "run the stages).")
     edge_weight: float = Param(1.0, ge=0, description="mu of the edge-preserving term on consecutive landmark "
@@ -238,7 +238,7 @@ class EstimateAppearance(Node):
                            "detected frame with the least open mouth.")
         prior_weight: float = Param(1.0, ge=0, description="Pull of each vertex's albedo toward the default "
                                     "(pixels' worth of evidence).")
-        iterations: int = Param(20, ge=1, le=500, description="Levenberg-Marquardt iterations per rigid stage.")
+        iterations: int = Param(10, ge=1, le=500, description="Levenberg-Marquardt iterations per rigid stage.")
         rounds: int = Param(4, ge=1, le=10, description="Outer rounds of the rigid fit (see fit.RigidPose).")
         passes: int = Param(2, ge=1, le=5, description="Alternations of rigid pose (with the current "
                             "appearance) and appearance (at that pose).")

@@ -211,7 +211,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         edge_weight: mu of the edge term.
         eyelid_weight: weight of the eyelid points.
         iterations: at most this many Levenberg-Marquardt iterations; a frame stops when a step
-            lowers its energy by less than 1e-6 relative.
+            lowers its energy by less than 1e-4 relative.
         rigid_prior: pose the rigid unknowns are pulled toward in expression stages, with
             `rigid_prior_weight` (per radian^2 and cm^2).
     Returns:
@@ -267,7 +267,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
             if not better.any():
                 break
             gain = (cost - cost_new) / cost.clamp_min(1e-12)
-            running = running & ~(better & (gain < 1e-6))
+            running = running & ~(better & (gain < 1e-4))
             new = state_at(rot, full(x + step, torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans,
                                                           weights[:, shapes]], 1)))
             rot = torch.where(better[:, None, None], new.rot, rot)
