@@ -135,8 +135,85 @@ def sh_from_lights(ambient: Sequence[float] | float, direction: Sequence[float] 
     return coeffs.astype(np.float32)
 
 
+class _Incidence(NamedTuple):
+    """Sparse CSR matrices of one triangle list (built once per faces, see `_incidence`)."""
+
+    faces: Tensor  # (T, 3) int64, to check a cache hit
+    corner: tuple[Tensor, Tensor, Tensor]  # (T, V): row t picks corner k of triangle t
+    corner_t: tuple[Tensor, Tensor, Tensor]  # (V, T): their transposes (scatter to vertices)
+    to_vertices: Tensor  # (V, T): sum of each vertex's adjacent triangles
+    to_faces: Tensor  # (T, V): its transpose
+
+
+_INCIDENCE_CACHE: dict[tuple, _Incidence] = {}
+
+
+def _incidence(faces: Tensor, num_vertices: int, dtype: torch.dtype) -> _Incidence:
+    """Sparse incidence matrices of `faces`, cached by (V, T, device, dtype) and checked
+    against the cached faces (a cheap exact comparison), so a changed topology rebuilds."""
+    key = (num_vertices, len(faces), faces.device, dtype)
+    hit = _INCIDENCE_CACHE.get(key)
+    if hit is not None and torch.equal(hit.faces, faces):
+        return hit
+    t = len(faces)
+    rows = torch.arange(t, device=faces.device)
+    ones = torch.ones(t, device=faces.device, dtype=dtype)
+
+    def csr(r: Tensor, c: Tensor, v: Tensor, shape: tuple[int, int]) -> Tensor:
+        return torch.sparse_coo_tensor(torch.stack([r, c]), v, shape).coalesce().to_sparse_csr()
+
+    import warnings
+    with warnings.catch_warnings():  # "sparse CSR support is in beta"
+        warnings.simplefilter("ignore", UserWarning)
+        corner = tuple(csr(rows, faces[:, k], ones, (t, num_vertices)) for k in range(3))
+        corner_t = tuple(csr(faces[:, k], rows, ones, (num_vertices, t)) for k in range(3))
+        all_rows, all_faces = faces.T.reshape(-1), rows.repeat(3)
+        to_vertices = csr(all_rows, all_faces, ones.repeat(3), (num_vertices, t))
+        to_faces = csr(all_faces, all_rows, ones.repeat(3), (t, num_vertices))
+    inc = _Incidence(faces.clone(), corner, corner_t, to_vertices, to_faces)  # type: ignore[arg-type]
+    if len(_INCIDENCE_CACHE) >= 4:
+        _INCIDENCE_CACHE.pop(next(iter(_INCIDENCE_CACHE)))
+    _INCIDENCE_CACHE[key] = inc
+    return inc
+
+
+class _NormalSums(torch.autograd.Function):
+    """Unnormalized vertex normals (sum of adjacent face cross products) with a hand-written
+    backward; both directions are sparse matrix products (several times faster than
+    gather / index_add autograd on CPU)."""
+
+    @staticmethod
+    def forward(ctx, vertices: Tensor, inc: _Incidence) -> Tensor:  # type: ignore[override]
+        bsz, nv, _ = vertices.shape
+        t = len(inc.faces)
+        x = vertices.permute(1, 0, 2).reshape(nv, bsz * 3)
+        p0, p1, p2 = ((m @ x).reshape(t, bsz, 3) for m in inc.corner)
+        e1, e2 = p1 - p0, p2 - p0
+        face_n = torch.linalg.cross(e1, e2, dim=-1)  # (T, B, 3), twice the area
+        ctx.save_for_backward(e1, e2)
+        ctx.inc = inc
+        return (inc.to_vertices @ face_n.reshape(t, bsz * 3)).reshape(nv, bsz, 3).permute(1, 0, 2)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        e1, e2 = ctx.saved_tensors
+        inc: _Incidence = ctx.inc
+        bsz, nv, _ = grad.shape
+        t = len(inc.faces)
+        g_face = (inc.to_faces @ grad.permute(1, 0, 2).reshape(nv, bsz * 3)).reshape(t, bsz, 3)
+        g1 = torch.linalg.cross(e2, g_face, dim=-1)  # d<g, e1 x e2>/d e1
+        g2 = torch.linalg.cross(g_face, e1, dim=-1)  # d<g, e1 x e2>/d e2
+        c0, c1, c2 = inc.corner_t
+        gx = c1 @ g1.reshape(t, -1) + c2 @ g2.reshape(t, -1) - c0 @ (g1 + g2).reshape(t, -1)
+        return gx.reshape(nv, bsz, 3).permute(1, 0, 2), None
+
+
 def vertex_normals(vertices: Tensor, faces: Tensor, eps: float = 1e-12) -> Tensor:
     """Area-weighted vertex normals (sum of adjacent face cross products, normalized).
+
+    Computed with sparse incidence matrices (cached per triangle list) and a hand-written
+    backward; `tests/nodes/render/test_renderer.py` checks values and gradients against a
+    plain gather / index_add autograd reference.
 
     Args:
         vertices: (B, V, 3) positions, cm.
@@ -146,9 +223,8 @@ def vertex_normals(vertices: Tensor, faces: Tensor, eps: float = 1e-12) -> Tenso
     Returns:
         (B, V, 3) unit normals, same dtype and device.
     """
-    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
-    face_n = torch.cross(v1 - v0, v2 - v0, dim=-1)  # (B, T, 3), twice the area
-    normals = torch.zeros_like(vertices).index_add(1, faces.T.reshape(-1), face_n.repeat(1, 3, 1))
+    faces = torch.as_tensor(faces, device=vertices.device).long()
+    normals = _NormalSums.apply(vertices, _incidence(faces, vertices.shape[1], vertices.dtype))
     return normals / normals.norm(dim=-1, keepdim=True).clamp_min(eps)
 
 
@@ -351,7 +427,7 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
 
     normals = vertex_normals(vertices, faces_t)
     attrs = torch.cat([albedo.expand(bsz, nv, 3), normals], -1).reshape(bsz * nv, 6)
-    values = torch.bmm(mu[:, None, :], attrs.index_select(0, flat_corner).reshape(-1, 3, 6))[:, 0]  # (N, 6)
+    values = (mu[:, :, None] * attrs.index_select(0, flat_corner).reshape(-1, 3, 6)).sum(1)  # (N, 6)
     n = values[:, 3:6]
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     basis = sh_basis(n)  # (N, 9)
@@ -362,18 +438,19 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     shaded = values[:, :3] * irradiance
 
     npix = bsz * hs * ws
+    # separate buffers: a loss on the image alone then never back-propagates through depth
+    # and barycentrics (slices of one shared buffer would each cost a full-size zero fill)
     ones = torch.ones(len(idx), 1, device=dev, dtype=dt)
-    buf = torch.zeros(npix, 8, device=dev, dtype=dt).index_put(
-        (idx,), torch.cat([shaded, ones, (1.0 / inv_z)[:, None], mu], -1))
-    cover = buf[:, 3:4]
-    colour = buf[:, :3] + background.reshape(npix, 3) * (1.0 - cover)
-    image = torch.cat([colour, cover], -1).reshape(bsz, hs, ws, 4)
+    canvas = torch.cat([background.reshape(npix, 3), torch.zeros(npix, 1, device=dev, dtype=dt)], -1)
+    image = canvas.index_put((idx,), torch.cat([shaded, ones], -1)).reshape(bsz, hs, ws, 4)
+    geometry = torch.zeros(npix, 4, device=dev, dtype=dt).index_put(
+        (idx,), torch.cat([(1.0 / inv_z)[:, None], mu], -1))
     if antialias:
         adj = triangle_adjacency(faces_t.cpu().numpy()) if adjacency is None else \
             np.asarray(adjacency.cpu() if isinstance(adjacency, Tensor) else adjacency, np.int64)
         image = _antialias(image, tri, zbuf, pix, faces_t, adj)
-    depth = buf[:, 4].reshape(bsz, hs, ws)
-    bary = buf[:, 5:8].reshape(bsz, hs, ws, 3)
+    depth = geometry[:, 0].reshape(bsz, hs, ws)
+    bary = geometry[:, 1:4].reshape(bsz, hs, ws, 3)
     if s > 1:
         image = F.avg_pool2d(image.permute(0, 3, 1, 2), s).permute(0, 2, 3, 1)
         c = s // 2

@@ -83,6 +83,33 @@ def test_vertex_normals_of_a_sphere_point_outwards():
     np.testing.assert_allclose(n, verts / 3.0, atol=2e-2)
 
 
+def _normals_by_gather(vertices, faces):
+    """Plain autograd reference: gather corners, cross, index_add to vertices, normalize."""
+    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
+    face_n = torch.cross(v1 - v0, v2 - v0, dim=-1)
+    sums = torch.zeros_like(vertices).index_add(1, faces.T.reshape(-1), face_n.repeat(1, 3, 1))
+    return sums / sums.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def test_vertex_normals_values_and_gradients_match_a_gather_reference(rng):
+    verts, faces = _icosphere(1, 2.0)
+    faces_t = torch.as_tensor(faces)
+    x = torch.as_tensor(verts[None] * rng.uniform(0.8, 1.2, (2, len(verts), 3)))  # batch of 2, bumpy
+    weights = torch.as_tensor(rng.normal(size=(2, len(verts), 3)))
+    ours = x.clone().requires_grad_()
+    ref = x.clone().requires_grad_()
+    (vertex_normals(ours, faces_t) * weights).sum().backward()
+    (_normals_by_gather(ref, faces_t) * weights).sum().backward()
+    np.testing.assert_allclose(vertex_normals(x, faces_t).numpy(), _normals_by_gather(x, faces_t).numpy(),
+                               atol=1e-12)
+    np.testing.assert_allclose(ours.grad.numpy(), ref.grad.numpy(), atol=1e-10)
+    assert torch.autograd.gradcheck(lambda v: vertex_normals(v, faces_t), (x[:1].clone().requires_grad_(),))
+    # a changed triangle list with the same sizes must not reuse the cached matrices
+    flipped = faces_t[:, [0, 2, 1]].contiguous()
+    np.testing.assert_allclose(vertex_normals(x, flipped).numpy(), -vertex_normals(x, faces_t).numpy(),
+                               atol=1e-12)
+
+
 def test_render_single_triangle_area_matches_closed_form(rng):
     width = height = 64
     world_to_camera, intr = _pinhole(width, height, 100.0)
