@@ -111,6 +111,31 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+class _HashingWriter:
+    """A write-only stream that hashes what passes through it.
+
+    Having no `tell`/`seek`, it makes `zipfile` (under `np.savez`) write the archive
+    strictly forward (sizes in data descriptors), so the sha256 of the bytes written is the
+    file's without reading the file back.
+    """
+
+    def __init__(self, fh: Any) -> None:
+        self._fh = fh
+        self.digest = hashlib.sha256()
+        self.size = 0
+
+    def write(self, data: bytes) -> int:
+        self.digest.update(data)
+        self.size += len(data)
+        return self._fh.write(data)
+
+    def flush(self) -> None:
+        self._fh.flush()
+
+    def read(self, *args: Any) -> bytes:  # np.savez tells files from paths by a `read` attribute
+        raise io.UnsupportedOperation("write-only stream")
+
+
 class Cache:
     """A cache folder (see the module docstring)."""
 
@@ -370,9 +395,9 @@ class Cache:
             for port, value in values.items():
                 name = f"{port}.npz"
                 with open(tmp / name, "wb") as fh:
-                    np.savez(fh, **value.to_arrays())
-                data = (tmp / name).read_bytes()
-                files[name] = {"size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+                    writer = _HashingWriter(fh)
+                    np.savez(writer, **value.to_arrays())
+                files[name] = {"size": writer.size, "sha256": writer.digest.hexdigest()}
                 ports[port] = {"file": name, "type": value.type_name}
             copy_list = []
             for index, path in enumerate(copies or []):

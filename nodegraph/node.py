@@ -244,6 +244,7 @@ class Node:
     cacheable: ClassVar[bool] = True
     writes_files: ClassVar[bool] = False
     resources: ClassVar[dict[str, float]] = {}
+    preload: ClassVar[tuple[str, ...]] = ()
     port_renames: ClassVar[dict[int, dict[str, str]]] = {}
     Params: ClassVar[type[NodeParams]] = NodeParams
     inputs: ClassVar[dict[str, In]] = {}

@@ -14,8 +14,9 @@ import sys
 import threading
 import time
 import warnings
+import weakref
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from .cache import COPY_LIMIT, Cache, CorruptEntry, cache_dir_from_env
 from .errors import NodeError
@@ -116,6 +117,67 @@ def _combine(parts: list[PortType], per_frame: bool) -> PortType:
     return kind.concat_frames(parts) if per_frame else kind.merge_chunks(parts)
 
 
+class _CombinedInputs:
+    """Joined chunk values shared by the tasks of one process that read the same chunks.
+
+    Several whole-sequence tasks often read the same upstream chunks (a loaded capture feeds
+    the reference, the solver and the report): concatenating 651 frames x 26,719 vertices
+    costs ~0.3 s and 210 MB each time. An entry is keyed by the identity of the upstream
+    `TaskResult` objects and the frame ranges read; it holds the joined value strongly and
+    the upstream results weakly, and is valid only while every upstream result is still the
+    very object it was made from (so a reused `id` can never return another run's value).
+    Entries die with their upstream results (released by dask when their last reader ran)
+    and all of them at the end of a run (`clear`). In worker processes (processes or
+    distributed schedulers) the upstream results are fresh copies per task: no hits, same
+    results as without it.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple, tuple[PortType, tuple[weakref.ref, ...]]] = {}
+        self._lock = threading.Lock()
+        self._key_locks: dict[tuple, threading.Lock] = {}
+
+    def _valid(self, refs: tuple[weakref.ref, ...], sources: Sequence[TaskResult]) -> bool:
+        return all(ref() is source for ref, source in zip(refs, sources))
+
+    def get(self, deps: Sequence[TaskResult], pieces: Sequence[tuple[int, str, int, int]],
+            per_frame: bool) -> PortType:
+        """The value of one input port read from `pieces` (dep index, port, lo, hi) of `deps`."""
+        def parts() -> list[PortType]:
+            out = []
+            for dep_index, out_port, lo, hi in pieces:
+                value = deps[dep_index].values[out_port]
+                out.append(value if lo < 0 else value.slice_frames(lo, hi))
+            return out
+
+        if len(pieces) == 1:
+            return _combine(parts(), per_frame)
+        sources = [deps[p[0]] for p in pieces]
+        key = tuple((id(src), port, lo, hi) for src, (_, port, lo, hi) in zip(sources, pieces)) + (per_frame,)
+        with self._lock:
+            key_lock = self._key_locks.setdefault(key, threading.Lock())
+        with key_lock:
+            with self._lock:
+                hit = self._entries.get(key)
+                if hit is not None and self._valid(hit[1], sources):
+                    return hit[0]
+            value = _combine(parts(), per_frame)
+            with self._lock:
+                for k in [k for k, (_, refs) in self._entries.items() if any(r() is None for r in refs)]:
+                    del self._entries[k]
+                    self._key_locks.pop(k, None)
+                self._entries[key] = (value, tuple(weakref.ref(src) for src in sources))
+        return value
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self._key_locks.clear()
+
+
+_COMBINED = _CombinedInputs()
+
+
 def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
     """Run one task on its upstream results (dask calls this in a worker)."""
     start = time.perf_counter()
@@ -131,15 +193,12 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
         node = spec.node_cls(spec.params, node_id=spec.node)
         inputs: dict[str, Any] = {}
         for port, pieces in spec.inputs:
-            parts = []
-            for dep_index, out_port, lo, hi in pieces:
-                value = deps[dep_index].values[out_port]
-                parts.append(value if lo < 0 else value.slice_frames(lo, hi))
+            value = _COMBINED.get(deps, pieces, pieces[0][2] >= 0)
             name, many, _ = port.partition("#")
             if many:  # a list port: one value per connection, in edge order ("port#0", "port#1", ...)
-                inputs.setdefault(name, []).append(_combine(parts, pieces[0][2] >= 0))
+                inputs.setdefault(name, []).append(value)
             else:
-                inputs[name] = _combine(parts, pieces[0][2] >= 0)
+                inputs[name] = value
         values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec),
                          seed=task_seed(spec.key), device=spec.device)
         values = _trim(node, values, spec.frames, spec.out_frames)
@@ -159,20 +218,86 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
         return TaskResult(spec.name, spec.node, spec.out_frames, "failed", error=record,
                           seconds=time.perf_counter() - start)
     if spec.cacheable and spec.cache_root is not None:
-        store = Cache(spec.cache_root)
-        written = _written_files(values) if spec.writes else None
-        try:
-            copies = None
-            if written is not None:
-                sizes = [os.stat(path).st_size for path in written.paths]
-                copies = list(written.paths) if sum(sizes) <= COPY_LIMIT else None
-            store.store(spec.key, values, spec.description, copies=copies)
-            if written is not None:
-                store.record_written(spec.key, written)
-        except OSError as err:
-            warnings.warn(f"could not cache {spec.name}: {err}", RuntimeWarning)
+        _STORES.submit(_store_task, spec, values)
     return TaskResult(spec.name, spec.node, spec.out_frames, "executed", values,
                       seconds=time.perf_counter() - start)
+
+
+def _store_task(spec: TaskSpec, values: dict[str, PortType]) -> None:
+    """Write a task's values (and a writer's file record) into the cache."""
+    store = Cache(spec.cache_root)
+    written = _written_files(values) if spec.writes else None
+    try:
+        copies = None
+        if written is not None:
+            sizes = [os.stat(path).st_size for path in written.paths]
+            copies = list(written.paths) if sum(sizes) <= COPY_LIMIT else None
+        store.store(spec.key, values, spec.description, copies=copies)
+        if written is not None:
+            store.record_written(spec.key, written)
+    except OSError as err:
+        warnings.warn(f"could not cache {spec.name}: {err}", RuntimeWarning)
+
+
+class _BackgroundStores:
+    """Cache writes off the critical path, for the in-process schedulers.
+
+    While `active` (set by `_execute` around a sync or threads run), `submit` hands the write
+    to one background thread and the task returns at once, so that its dependents start
+    while its values are being written (saving, hashing and renaming a 210 MB entry takes
+    ~0.6 s). `drain` waits for every pending write and is called before the run returns, so
+    a finished run has all its entries on disk, exactly as with synchronous writes. Elsewhere
+    (worker processes, distributed workers) writes stay synchronous.
+    """
+
+    def __init__(self) -> None:
+        self.active = False
+        self._executor: Any = None
+        self._pending: list[Any] = []
+        self._lock = threading.Lock()
+
+    def submit(self, fn: Callable[..., None], *args: Any) -> None:
+        if not self.active:
+            fn(*args)
+            return
+        with self._lock:
+            if self._executor is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._executor = ThreadPoolExecutor(1, thread_name_prefix="nodegraph-cache")
+            self._pending.append(self._executor.submit(fn, *args))
+            backlog = [f for f in self._pending if not f.done()]
+        if len(backlog) > 4:  # back-pressure: never hold more than a few unwritten results
+            backlog[0].result()
+
+    def drain(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for future in pending:
+            future.result()
+
+
+_STORES = _BackgroundStores()
+
+
+def _preload(modules: Sequence[str]) -> None:
+    """Import slow modules that planned nodes will import (`Node.preload`) in a background
+    thread, so the import overlaps upstream work instead of delaying the node. An import
+    that fails here is left for the node itself to report."""
+    missing = [m for m in dict.fromkeys(modules) if m not in sys.modules]
+    if not missing:
+        return
+
+    def work() -> None:
+        import importlib
+
+        for name in missing:
+            try:
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001 - the node's own import raises it properly
+                pass
+
+    threading.Thread(target=work, name="nodegraph-preload", daemon=True).start()
 
 
 def _written_files(values: Mapping[str, PortType]) -> Files | None:
@@ -355,8 +480,14 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
             import dask.multiprocessing
 
             get, kwargs = dask.multiprocessing.get, ({"num_workers": workers} if workers else {})
-        with _Progress():
-            out = get(dsk, keys, **kwargs)
+        _STORES.active = scheduler in ("sync", "threads")
+        try:
+            with _Progress():
+                out = get(dsk, keys, **kwargs)
+            _STORES.drain()
+        finally:
+            _STORES.active = False
+            _COMBINED.clear()
         return list(out[: len(meta_keys)]), list(out[len(meta_keys):])
     from distributed import Client, as_completed
 
@@ -461,6 +592,8 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
         reporter = _Reporter(plan, names, mode)
         gpu_tasks = {n for n in names if not plan.tasks[n].hit and plan.tasks[n].device != "cpu"
                      and plan.nodes[plan.tasks[n].node].resources}
+        if scheduler in ("sync", "threads"):
+            _preload([m for n in names if not plan.tasks[n].hit for m in plan.nodes[plan.tasks[n].node].preload])
         metas, results = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter, workers,
                                   {n: dict(plan.nodes[plan.tasks[n].node].resources) for n in gpu_tasks})
         if any(m["status"] == "corrupt" for m in metas) and attempt == 0:

@@ -69,7 +69,16 @@ def _check_array(where: str, name: str, value: Any, ndim: int, last: tuple[int |
 
 
 def _check_finite(where: str, name: str, value: np.ndarray) -> None:
-    if value.dtype.kind == "f" and not np.isfinite(value).all():
+    if value.dtype.kind != "f" or value.size == 0:
+        return
+    # A finite sum proves every element finite (inf and nan propagate through IEEE addition);
+    # only a non-finite sum (a bad value, or huge finite values overflowing) needs the
+    # element-wise test. The sum reads the array once and allocates nothing.
+    with np.errstate(all="ignore"):
+        total = np.add.reduce(value, axis=None)
+    if np.isfinite(total):
+        return
+    if not np.isfinite(value).all():
         bad = np.argwhere(~np.isfinite(value))[0]
         _fail(where, f"'{name}' has a non-finite value at index {tuple(int(i) for i in bad)}")
 

@@ -223,6 +223,7 @@ class CaptureReport(Node):
     version = 1
     kind = SEQUENCE
     writes_files = True
+    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")
 
     class Params(NodeParams):
         folder: str = Param("report", output_file=True, description="output folder (created if missing)")

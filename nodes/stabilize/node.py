@@ -94,6 +94,7 @@ class ModePursuit(Node):
     type_name = "stabilize.ModePursuit"
     version = 2
     kind = SEQUENCE
+    preload = ("torch",)
     Params = ModePursuitParams
 
     @classmethod
