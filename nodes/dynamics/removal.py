@@ -109,6 +109,7 @@ class TrainRemoval(Node):
         batch_size: int = Param(10000, ge=1, description="rows per Adam step")
         lr: float = Param(1e-3, gt=0, description="Adam learning rate")
         max_rows: int = Param(200000, ge=1, description="(frame, sample) rows drawn for training")
+        seed: int | None = Param(None, ge=0, description="seed of the weight initialisation and of the row and batch order; none = derived from the task's cache key (it then changes with the inputs, parameters and code version); an integer pins training across versions")
 
     captures = In(MeshSequence, many=True, doc="world-space dynamic captures (cm)")
     skulls = In(RigidSequence, many=True, doc="skull-to-world transforms, one per capture")
@@ -134,7 +135,8 @@ class TrainRemoval(Node):
         rest = stabilize_points(first.vertices[:1], skulls[0].matrices[:1])[0]
         samples = select_samples(rest, p.num_samples, region_vertices(first, p.region))
         landmarks = skull_landmarks(rest)
-        rng = np.random.default_rng(self.seed)
+        seed = self.seed if p.seed is None else p.seed
+        rng = np.random.default_rng(seed)
         inputs, targets = [], []
         valid_frames = []
         for i in range(count):
@@ -172,7 +174,7 @@ class TrainRemoval(Node):
         out_mean, out_std = standardize_stats(y_all)
         result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std,
                            hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
-                           seed=self.seed % (2 ** 63), device=self.device,
+                           seed=seed % (2 ** 63), device=self.device,
                            progress=lambda f, m: self.progress(0.1 + 0.9 * f, m))
         config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden), "out_features": 3,
                   "kind": "removal", "window": p.window, "feature_fps": p.feature_fps,

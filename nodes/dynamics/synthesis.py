@@ -73,6 +73,7 @@ class TrainSynthesis(Node):
         epochs: int = Param(30, ge=1, description="passes over the training frames")
         batch_size: int = Param(50, ge=1, description="frames per Adam step")
         lr: float = Param(1e-3, gt=0, description="Adam learning rate")
+        seed: int | None = Param(None, ge=0, description="seed of the weight initialisation and of the row and batch order; none = derived from the task's cache key (it then changes with the inputs, parameters and code version); an integer pins training across versions")
 
     captures = In(MeshSequence, many=True, doc="world-space dynamic captures (cm)")
     quasistatic = In(MeshSequence, many=True, doc="their world-space quasistatic sequences (cm)")
@@ -116,7 +117,8 @@ class TrainSynthesis(Node):
         out_mean, out_std = standardize_stats(y_all)
         result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std, hidden=p.hidden,
                            epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
-                           seed=self.seed % (2 ** 63), device=self.device, progress=self.progress)
+                           seed=(self.seed if p.seed is None else p.seed) % (2 ** 63), device=self.device,
+                           progress=self.progress)
         config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden),
                   "out_features": int(y_all.shape[1]), "kind": "synthesis", "window": p.window,
                   "feature_fps": p.feature_fps, "num_vertices": int(len(rest))}
