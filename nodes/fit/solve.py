@@ -28,6 +28,7 @@ Torch is imported at the top: import this module from node `run()` methods only.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
@@ -42,6 +43,10 @@ from .views import (Anchors, FitModel, FitViews, anchors_from_render, crop_to_im
 
 __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
            "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]
+
+_FORWARD_AD_LOCK = threading.Lock()
+"""Serializes `torch.func.jacfwd`: its dual levels are process-wide, so two threads (the threads
+scheduler running two chunks) would corrupt each other's ("forward AD level with an invalid index")."""
 
 BOUND_PENALTY = 1e4
 """Weight of the quadratic penalty that keeps expression weights in [0, 1]."""
@@ -251,7 +256,8 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         lam = torch.full((b,), 1e-3, dtype=dt, device=dev)
         running = torch.ones(b, dtype=torch.bool, device=dev)
         for _ in range(iterations if n_p else 0):
-            jac = torch.func.jacfwd(lambda d: fn(x + d[None]))(torch.zeros(n_p, dtype=dt, device=dev))  # (B, M, P)
+            with _FORWARD_AD_LOCK:  # torch's forward-AD levels are process-wide: one jacfwd at a time
+                jac = torch.func.jacfwd(lambda d: fn(x + d[None]))(torch.zeros(n_p, dtype=dt, device=dev))  # (B, M, P)
             jtj = jac.transpose(1, 2) @ jac
             jtr = (jac.transpose(1, 2) @ r[..., None])[..., 0]
             diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)

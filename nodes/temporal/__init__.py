@@ -1,10 +1,12 @@
 """Temporal refinement of fitted parameters: parameter layout (`layout.py`), three-frame averaging
 (`averaging.py`), per-frame plate/self-flow solves (`flowfit.py`), infill and smoothing sweeps
-(`sweeps.py`), synthetic plates for tests and benches (`synthetic.py`) and the nodes (`nodes.py`).
+(`sweeps.py`), synthetic plates for tests and benches (`synthetic.py`), the nodes (`nodes.py`) and
+the motion report (`report.py`).
 
 Importing the package registers the nodes only; torch is imported when a node runs.
 """
 
 from .nodes import Average, FlowInfill, Hybrid, PlateFlow, SelfFlow
+from .report import MotionReport
 
-__all__ = ["Average", "FlowInfill", "Hybrid", "PlateFlow", "SelfFlow"]
+__all__ = ["Average", "FlowInfill", "Hybrid", "MotionReport", "PlateFlow", "SelfFlow"]

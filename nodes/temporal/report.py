@@ -1,0 +1,174 @@
+"""Rigid parameters over time, several versions of one shot side by side (the paper's Figs. 15-17).
+
+`rigid_curves` turns a fitted `ParamSequence` (either layout of `nodes.temporal.layout`) into
+Euler angles (deg) and translations (cm) per frame; `roughness` is the mean squared second
+difference of a curve (what temporal smoothing lowers); `temporal.MotionReport` plots the
+curves of every connected sequence (raw fit, averaged, hybrid, ...), with the truth when it is
+known, shades failed frames, and returns a table of roughness and error to the truth.
+
+matplotlib and scipy are imported inside the functions that need them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence, Table
+from nodegraph.files import files_value, write_text_atomic
+
+from .layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, ROTATION_NAMES, TRANSLATION_NAMES
+
+__all__ = ["rigid_curves", "roughness", "MotionReport"]
+
+_AXES = ("x", "y", "z")
+
+
+def rigid_curves(params: ParamSequence, where: str = "series") -> tuple[np.ndarray, np.ndarray]:
+    """Head rotation and translation per frame.
+
+    Args:
+        params: (F, P) with r00..r22 + tx ty tz (`nodes.fit`) or rot_x..z (rad) + trans_x..z (cm).
+        where: the port named in errors.
+    Returns:
+        angles (F, 3) degrees, extrinsic XYZ (`R = Rz Ry Rx`, scipy "xyz"), unwrapped over time;
+        translation (F, 3) cm. Frames with non-finite values are NaN.
+    Raises:
+        InputError: the rigid columns are missing.
+    """
+    from scipy.spatial.transform import Rotation
+
+    names = list(params.names)
+    values = np.asarray(params.values, np.float64)
+    if all(n in names for n in MATRIX_NAMES) and all(n in names for n in FIT_TRANSLATION_NAMES):
+        rot = values[:, [names.index(n) for n in MATRIX_NAMES]].reshape(-1, 3, 3)
+        trans = values[:, [names.index(n) for n in FIT_TRANSLATION_NAMES]]
+        to_rotation = Rotation.from_matrix
+    elif all(n in names for n in ROTATION_NAMES + TRANSLATION_NAMES):
+        rot = values[:, [names.index(n) for n in ROTATION_NAMES]]
+        trans = values[:, [names.index(n) for n in TRANSLATION_NAMES]]
+        to_rotation = Rotation.from_rotvec
+    else:
+        raise InputError(where, f"expected columns r00..r22 + tx ty tz or rot_x..z + trans_x..z, found "
+                                f"{names[:12]}{' ...' if len(names) > 12 else ''}")
+    good = np.isfinite(rot.reshape(len(rot), -1)).all(1) & np.isfinite(trans).all(1)
+    angles = np.full((len(values), 3), np.nan)
+    if good.any():
+        euler = to_rotation(rot[good]).as_euler("xyz")
+        angles[good] = np.degrees(np.unwrap(euler, axis=0))
+    trans = np.where(good[:, None], trans, np.nan)
+    return angles, trans
+
+
+def roughness(curve: np.ndarray) -> np.ndarray:
+    """Mean squared second difference per column over frames where three in a row are finite.
+
+    Args:
+        curve: (F, C) values per frame.
+    Returns:
+        (C,) mean of `(x[f+1] - 2 x[f] + x[f-1])^2`, in the curve's units squared; NaN when
+        no three consecutive frames are finite.
+    """
+    curve = np.asarray(curve, np.float64)
+    if len(curve) < 3:
+        return np.full(curve.shape[1], np.nan)
+    second = curve[2:] - 2.0 * curve[1:-1] + curve[:-2]
+    ok = np.isfinite(second).all(1)
+    return (second[ok] ** 2).mean(0) if ok.any() else np.full(curve.shape[1], np.nan)
+
+
+COLUMNS = ("series", "rough_rot_deg2", "rough_trans_cm2", "rot_err_deg", "trans_err_cm")
+
+
+class MotionReport(Node):
+    """Plot the head's rotation and translation over time for several versions of a fit."""
+
+    type_name = "temporal.MotionReport"
+    version = 1
+    kind = SEQUENCE
+    writes_files = True
+    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")
+
+    class Params(NodeParams):
+        folder: str = Param("motion_report", output_file=True, description="Output folder (created if missing): "
+                            "motion.png, motion.md, motion.json.")
+        labels: list[str] = Param([], description="Names of the connected series, in connection order; "
+                                  "missing ones are series_1, series_2, ...")
+
+    series = In(ParamSequence, many=True, doc="Fitted parameter sequences to compare (e.g. raw, averaged, hybrid).")
+    truth = In(ParamSequence, optional=True, doc="True parameters, when known (synthetic plates).")
+    failed = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0 where the fit failed (shaded).")
+    files = Out(Files, doc="The files written.")
+    table = Out(Table, doc="Per series: roughness (mean squared second difference) of the Euler angles "
+                           "(deg^2) and translation (cm^2), and median error to the truth (deg, cm).")
+
+    def run(self, series: list[ParamSequence], truth: ParamSequence | None,
+            failed: ParamSequence | None) -> dict:
+        if not series:
+            raise InputError("series", "connect at least one parameter sequence, found none")
+        labels = list(self.params.labels) + [f"series_{i + 1}" for i in range(len(self.params.labels), len(series))]
+        labels = labels[:len(series)]
+        if len(set(labels)) < len(labels):
+            raise InputError("labels", f"expected distinct names for the {len(series)} series, found {labels}")
+        frames = series[0].num_frames
+        for name, seq in zip(labels, series):
+            if seq.num_frames != frames:
+                raise InputError("series", f"expected {frames} frames in every series (as '{labels[0]}'), "
+                                           f"'{name}' has {seq.num_frames}")
+        if truth is not None and truth.num_frames != frames:
+            raise InputError("truth", f"expected {frames} frames (as the series), found {truth.num_frames}")
+        if failed is not None and (failed.num_frames != frames or failed.values.shape[1] < 1):
+            raise InputError("failed", f"expected ({frames}, 1+) flags, found {failed.values.shape}")
+        curves = {name: rigid_curves(seq, "series") for name, seq in zip(labels, series)}
+        true_curves = rigid_curves(truth, "truth") if truth is not None else None
+        rows = []
+        for name, (angles, trans) in curves.items():
+            row = [name, float(np.nansum(roughness(angles))), float(np.nansum(roughness(trans)))]
+            if true_curves is not None:
+                rot_err = np.linalg.norm(angles - true_curves[0], axis=1)
+                trans_err = np.linalg.norm(trans - true_curves[1], axis=1)
+                row += [float(np.nanmedian(rot_err)), float(np.nanmedian(trans_err))]
+            else:
+                row += [float("nan"), float("nan")]
+            rows.append([row[0]] + [round(v, 6) for v in row[1:]])
+        table = Table(list(COLUMNS), rows)
+        folder = Path(self.params.folder)
+        mask = failed.values[:, 0] > 0.5 if failed is not None else np.zeros(frames, bool)
+        png = _plot(curves, true_curves, mask, folder / "motion.png", self.frames.start)
+        self.progress(0.8, "motion plotted")
+        lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+        lines += ["| " + " | ".join(str(v) for v in row) + " |" for row in rows]
+        write_text_atomic(folder / "motion.md", "\n".join(lines) + "\n")
+        write_text_atomic(folder / "motion.json", json.dumps({"columns": list(COLUMNS), "rows": rows},
+                                                             indent=1, allow_nan=True) + "\n")
+        paths = [str(png), str(folder / "motion.md"), str(folder / "motion.json")]
+        return {"files": files_value(paths), "table": table}
+
+
+def _plot(curves: dict[str, tuple[np.ndarray, np.ndarray]], truth: tuple[np.ndarray, np.ndarray] | None,
+          failed: np.ndarray, path: Path, first_frame: int) -> Path:
+    from matplotlib.figure import Figure
+
+    from ..report.plots import save_figure
+
+    fig = Figure(figsize=(12, 6))
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.93, wspace=0.22, hspace=0.3)
+    axes = fig.subplots(2, 3, sharex=True)
+    frames = first_frame + np.arange(len(failed))
+    for c in range(3):
+        for row in range(2):
+            ax = axes[row, c]
+            for f in frames[failed]:
+                ax.axvspan(f - 0.5, f + 0.5, color="0.9", linewidth=0)
+            if truth is not None:
+                ax.plot(frames, truth[row][:, c], color="black", linestyle="--", linewidth=1, label="truth")
+            for name, pair in curves.items():
+                ax.plot(frames, pair[row][:, c], linewidth=1, label=name)
+            ax.grid(alpha=0.3)
+        axes[0, c].set_title(f"rotation about {_AXES[c]} (deg)")
+        axes[1, c].set_title(f"translation {_AXES[c]} (cm)")
+        axes[1, c].set_xlabel("frame")
+    axes[0, 0].legend(loc="upper right", fontsize="small")
+    return save_figure(fig, path)
