@@ -56,7 +56,7 @@ class FlowSettings(NamedTuple):
     alpha: float = 0.06
     levels: int = 5
     min_size: int = 12
-    warps: int = 3
+    warps: int = 8
     iterations: int = 40
     finest_iterations: int = 12
     eps: float = 0.01

@@ -24,7 +24,7 @@ class OpticalFlow(Node):
     class Params(NodeParams):
         alpha: float = Param(0.06, gt=0, description="Smoothness weight (normalized intensity units).")
         levels: int = Param(5, ge=1, le=8, description="Pyramid levels at most.")
-        warps: int = Param(3, ge=1, le=10, description="Warps per level.")
+        warps: int = Param(8, ge=1, le=20, description="Warps per level (8: on 256 px face renders with ~6 px motion the end-point error is 0.89 px, against 1.63 with 3 warps; time grows linearly).")
         iterations: int = Param(40, ge=1, le=500, description="Jacobi iterations per warp, coarsest level.")
         finest_iterations: int = Param(12, ge=1, le=500, description="Jacobi iterations per warp, finest level.")
 
