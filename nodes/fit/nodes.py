@@ -18,6 +18,8 @@ camera, in the same order; the energies of the cameras are summed. Pose outputs:
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from pathlib import Path
 from typing import Any, Literal
@@ -165,6 +167,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
             state = _state_from(start[sel, :12], np.nan_to_num(start[sel, 12:12 + k]) if start.shape[1] > 12
                                 else np.zeros((len(sel), k), np.float32), dev)
             stages, first_on_landmarks = expression_stages(model.expression_names), False
+            if getattr(p, "hold_pose", False):
+                stages = tuple(dataclasses.replace(stage, rotation=False, translation=False) for stage in stages)
         state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
                                  first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
                                  edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
@@ -395,6 +399,9 @@ class RigidPose(Node):
 class _ExpressionParams(_FitParams):
     prior: float = Param(100.0, ge=0, description="lambda of the L2 prior on the active weights (the paper's "
                          "1e2), 256-crop pixel^2 per unit weight^2.")
+    hold_pose: bool = Param(False, description="Keep the rigid pose of `pose` fixed in every stage (re-estimating "
+                            "the expression after temporal smoothing of the rigid motion); frames without "
+                            "landmarks then keep the input's values instead of failing.")
 
 
 class Expression(Node):
@@ -411,18 +418,35 @@ class Expression(Node):
     cameras = In(Camera, many=True, doc="The cameras, in the same order.")
     model = In(FaceModel, doc="The face model (identity applied).")
     appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
-    pose = In(ParamSequence, doc="From fit.RigidPose.")
+    pose = In(ParamSequence, doc="From fit.RigidPose (12 columns), or a fit (12 + one per expression weight, "
+              "the weights then start the solve), e.g. temporally smoothed.")
+    keep = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0: frames passed through unchanged from "
+              "`pose` (e.g. frames filled by flow whose plates gave no usable landmarks).")
     fitted = Out(ParamSequence, doc="r00..r22, tx ty tz (cm), then one column per expression weight.")
     mesh = Out(MeshSequence, doc="(F, V, 3) the fitted head, world frame, cm (the unposed neutral where "
                   "failed: read `failed`).")
-    energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
+    energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2 (NaN for passed-through frames).")
     failed = Out(ParamSequence, doc="failed: 1 where no face or no rigid pose.")
 
     def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
-            model: FaceModel, pose: ParamSequence, appearance: JsonValue | None = None) -> dict[str, Any]:
-        if pose.values.shape[1] != 12:
-            raise InputError("pose", f"expected 12 columns {POSE_NAMES}, found {pose.values.shape[1]}")
-        out = _run_fit(self, "expression", landmarks, boxes, cameras, model, appearance, pose.values)
+            model: FaceModel, pose: ParamSequence, appearance: JsonValue | None = None,
+            keep: ParamSequence | None = None) -> dict[str, Any]:
+        k = len(model.expression_names)
+        start = np.asarray(pose.values, np.float32)
+        if start.shape[1] not in (12, 12 + k):
+            raise InputError("pose", f"expected 12 columns {POSE_NAMES} or {12 + k} (pose + the model's {k} "
+                                     f"weights), found {start.shape[1]}")
+        if keep is not None and (keep.num_frames != len(start) or keep.values.shape[1] < 1):
+            raise InputError("keep", f"expected ({len(start)}, 1+) flags, found {keep.values.shape}")
+        passed = keep.values[:, 0] > 0.5 if keep is not None else np.zeros(len(start), bool)
+        out = _run_fit(self, "expression", landmarks, boxes, cameras, model, appearance,
+                       np.where(passed[:, None], np.nan, start))
+        finite = np.isfinite(start).all(1) if start.shape[1] == 12 + k else np.zeros(len(start), bool)
+        through = finite & (passed | (out["failed"] & self.params.hold_pose))
+        if through.any():
+            out["pose"][through] = start[through, :12]
+            out["weights"][through] = start[through, 12:]
+            out["failed"] = out["failed"] & ~through
         values = np.concatenate([out["pose"], out["weights"]], 1)
         rot = out["pose"][:, :9].reshape(-1, 3, 3)
         verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \

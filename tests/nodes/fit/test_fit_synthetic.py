@@ -131,3 +131,31 @@ def test_rigid_pose_is_deterministic_and_flags_a_frame_without_a_face(scene):
     assert np.isnan(a["pose"].values[1]).all() and np.isfinite(a["pose"].values[[0, 2, 3]]).all()
     flags = run_node(FlagFailures, energy=a["energy"], failed=a["failed"])["flags"]
     assert flags.values[1, 0] == 1
+
+
+def test_expression_with_the_pose_held_keeps_the_rigid_pose_and_passes_kept_frames(scene):
+    from nodegraph import Landmarks2D, ParamSequence
+
+    model, cams, truth, views = scene
+    _, boxes, marks = views[0]
+    pts, conf, box = marks.points.copy(), marks.confidence.copy(), boxes.values.copy()
+    pts[2], conf[2], box[2] = np.nan, 0.0, np.nan  # frame 2: no landmarks (a frame flow filled in)
+    lms, bxs = [Landmarks2D(pts, conf)], [ParamSequence(box, list(boxes.names))]
+    k = len(model.expression_names)
+    start = np.concatenate([truth["rotation"].reshape(FRAMES, 9), truth["translation"],
+                            np.full((FRAMES, k), 0.05)], 1).astype(np.float32)
+    names = [f"r{i}{j}" for i in range(3) for j in range(3)] + ["tx", "ty", "tz"] + list(model.expression_names)
+    keep = ParamSequence(np.eye(FRAMES, dtype=np.float32)[3:4].T, ["failed"])  # frame 3: kept as given
+    out = run_node(Expression, {"rounds": 1, "iterations": 4, "hold_pose": True}, frames=range(FRAMES),
+                   landmarks=lms, boxes=bxs, cameras=cams[:1], model=model, pose=ParamSequence(start, names),
+                   keep=keep)
+    got = out["fitted"].values
+    np.testing.assert_allclose(got[:, :12], start[:, :12], atol=1e-5)  # the rigid pose never moved
+    np.testing.assert_array_equal(got[[2, 3]], start[[2, 3]])  # no landmarks / kept: passed through
+    assert out["failed"].values[:, 0].tolist() == [0, 0, 0, 0]
+    j = model.expression_names.index("jawOpen")
+    assert np.abs(got[[0, 1], 12 + j] - truth["weights"][[0, 1], j]).max() < 0.25  # the jaw was re-estimated
+    assert not np.allclose(got[[0, 1], 12:], start[[0, 1], 12:])
+    with pytest.raises(Exception, match="pose"):
+        run_node(Expression, {"hold_pose": True}, frames=range(FRAMES), landmarks=lms, boxes=bxs, cameras=cams[:1],
+                 model=model, pose=ParamSequence(start[:, :20], names[:20]))
