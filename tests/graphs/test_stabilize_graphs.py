@@ -62,8 +62,9 @@ def test_stabilize_graph_missing_capture_exit_2(tmp_path):
 
 def test_demo_graph_runs_and_mode_pursuit_wins(tmp_path):
     graph = Graph.load(GRAPHS / "demo.json")
-    result = run(graph, parameters={"report": str(tmp_path / "demo"), "num_frames": 150}, scheduler="threads",
-                 cache=tmp_path / "cache", chunk=50)
+    params = {"report": str(tmp_path / "demo"), "num_frames": 150, "html": str(tmp_path / "demo" / "index.html")}
+    result = run(graph, parameters=params, scheduler="threads", cache=tmp_path / "cache", chunk=50,
+                 outputs=["report", "html"])
     assert result.exit_code == 0, result.summary()
     table = result.outputs["report"]["table"]
     median = dict(zip(table.column("method"), table.column("median_cm")))
@@ -73,3 +74,13 @@ def test_demo_graph_runs_and_mode_pursuit_wins(tmp_path):
     files = {Path(p).name for p in result.outputs["report"]["files"].paths}
     assert files == {"head_motion.png", "histograms.png", "errors.md", "errors.json"}
     assert "mode_pursuit" in (tmp_path / "demo" / "errors.md").read_text()
+    page = tmp_path / "demo" / "index.html"
+    assert result.outputs["html"]["files"].paths == [str(page)]
+    from tests.nodes.report.test_html import CHROMIUM, check_in_browser
+
+    if CHROMIUM is not None:  # .ci/run installs Debian's chromium
+        dom = check_in_browser(page, tmp_path)
+        assert "histograms.png" in dom and "mode_pursuit" in dom
+    again = run(Graph.load(GRAPHS / "demo.json"), parameters=params, scheduler="threads", cache=tmp_path / "cache",
+                chunk=50, outputs=["report", "html"])
+    assert again.executed() == 0, again.summary()  # served from the cache
