@@ -128,11 +128,12 @@ class _CombinedInputs:
     very object it was made from (so a reused `id` can never return another run's value).
     Entries die with their upstream results (released by dask when their last reader ran)
     and all of them at the end of a run (`clear`). In worker processes (processes or
-    distributed schedulers) the upstream results are fresh copies per task: no hits, same
-    results as without it.
+    distributed schedulers) the upstream results are fresh copies per task, so it is only
+    active around in-process runs (sync and threads schedulers).
     """
 
     def __init__(self) -> None:
+        self.active = False  # set by `_execute` around a sync or threads run
         self._entries: dict[tuple, tuple[PortType, tuple[weakref.ref, ...]]] = {}
         self._lock = threading.Lock()
         self._key_locks: dict[tuple, threading.Lock] = {}
@@ -150,7 +151,7 @@ class _CombinedInputs:
                 out.append(value if lo < 0 else value.slice_frames(lo, hi))
             return out
 
-        if len(pieces) == 1:
+        if len(pieces) == 1 or not self.active:
             return _combine(parts(), per_frame)
         sources = [deps[p[0]] for p in pieces]
         key = tuple((id(src), port, lo, hi) for src, (_, port, lo, hi) in zip(sources, pieces)) + (per_frame,)
@@ -480,13 +481,13 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
             import dask.multiprocessing
 
             get, kwargs = dask.multiprocessing.get, ({"num_workers": workers} if workers else {})
-        _STORES.active = scheduler in ("sync", "threads")
+        _STORES.active = _COMBINED.active = scheduler in ("sync", "threads")
         try:
             with _Progress():
                 out = get(dsk, keys, **kwargs)
             _STORES.drain()
         finally:
-            _STORES.active = False
+            _STORES.active = _COMBINED.active = False
             _COMBINED.clear()
         return list(out[: len(meta_keys)]), list(out[len(meta_keys):])
     from distributed import Client, as_completed

@@ -51,6 +51,7 @@ def _result(name: str, values: np.ndarray) -> TaskResult:
 
 def test_a_shared_join_is_valid_only_for_the_very_same_upstream_results():
     combined = _CombinedInputs()
+    combined.active = True
     a, b = _result("a", np.zeros((3, 1), np.float32)), _result("b", np.ones((2, 1), np.float32))
     pieces = [(0, "v", -1, -1), (1, "v", -1, -1)]
     first = combined.get([a, b], pieces, True)
