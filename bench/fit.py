@@ -47,11 +47,11 @@ def main() -> None:
     # as graphs/fit_video.json: identity with the default appearance, the appearance of that
     # identity, the identity again with that appearance
     t = time.perf_counter()
-    first = run_node(EstimateIdentity, {"mode": args.identity}, frames=range(f), model=model, **views)
+    first = run_node(EstimateIdentity, {"mode": args.identity, "frames_used": 8}, frames=range(f), model=model, **views)
     app = run_node(EstimateAppearance, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
                    model=first["fitted_model"])
     common = dict(views, appearance=app["appearance"])
-    ident = run_node(EstimateIdentity, {"mode": args.identity}, frames=range(f), model=model, **common)
+    ident = run_node(EstimateIdentity, {"mode": args.identity, "frames_used": 8}, frames=range(f), model=model, **common)
     times["identity + appearance (once, per shot)"] = time.perf_counter() - t
     fitted = ident["fitted_model"]
     t = time.perf_counter()
