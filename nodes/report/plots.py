@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "rigid_to_euler_translation", "default_vertices",
-    "PositionSpread", "position_spread", "plot_head_motion", "plot_position_histograms",
+    "PositionSpread", "position_spread", "plot_head_motion", "plot_rigid_curves", "plot_position_histograms",
     "save_figure", "CaptureReport",
 ]
 
@@ -140,27 +140,57 @@ def plot_head_motion(curves: Mapping[str, np.ndarray], path: str | os.PathLike,
     """
     if not curves:
         raise ValueError("curves: expected at least one label -> (F, 4, 4) matrices, found none")
+    split = {}
+    for label, matrices in curves.items():
+        try:
+            split[label] = rigid_to_euler_translation(matrices)
+        except ValueError as err:
+            raise ValueError(f"curves['{label}']: {err}") from err
+    return plot_rigid_curves(split, path, fps=fps)
+
+
+def plot_rigid_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike, *,
+                      fps: float | None = None, first_frame: int = 0, shaded: np.ndarray | None = None,
+                      dashed: str | None = None) -> Path:
+    """The 2 x 3 figure of `plot_head_motion` from angles and translations already split.
+
+    Args:
+        curves: label -> (angles (F, 3) deg, translation (F, 3) cm); NaN frames leave gaps.
+        path: PNG file to write.
+        fps: frames per second of a top axis in seconds; None = no top axis.
+        first_frame: number of the first frame (the x axis).
+        shaded: (F,) bool frames drawn with a grey band (e.g. failed fits).
+        dashed: a label drawn dashed in black (e.g. "truth"), before the others.
+    Returns:
+        The written path.
+    """
     from matplotlib.figure import Figure
 
     # Fixed margins (no constrained layout: its solver was most of the report's time).
     fig = Figure(figsize=(12, 6))
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.88, wspace=0.22, hspace=0.3)
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.88 if fps else 0.93, wspace=0.22, hspace=0.3)
     axes = fig.subplots(2, 3, sharex=True)
-    for label, matrices in curves.items():
-        try:
-            angles, trans = rigid_to_euler_translation(matrices)
-        except ValueError as err:
-            raise ValueError(f"curves['{label}']: {err}") from err
-        frames = np.arange(len(angles))
+    count = len(next(iter(curves.values()))[0]) if curves else 0
+    frames = first_frame + np.arange(count)
+    if shaded is not None:
+        for f in frames[np.asarray(shaded, bool)]:
+            for ax in axes.flat:
+                ax.axvspan(f - 0.5, f + 0.5, color="0.9", linewidth=0)
+    order = ([dashed] if dashed in curves else []) + [k for k in curves if k != dashed]
+    for label in order:
+        angles, trans = curves[label]
+        style = {"color": "black", "linestyle": "--"} if label == dashed else {}
+        x = first_frame + np.arange(len(angles))
         for c in range(3):
-            axes[0, c].plot(frames, angles[:, c], label=label, linewidth=1)
-            axes[1, c].plot(frames, trans[:, c], label=label, linewidth=1)
+            axes[0, c].plot(x, angles[:, c], label=label, linewidth=1, **style)
+            axes[1, c].plot(x, trans[:, c], label=label, linewidth=1, **style)
     for c, name in enumerate(_AXES):
         axes[0, c].set_title(f"rotation about {name} (deg)")
         axes[1, c].set_title(f"translation {name} (cm)")
         axes[1, c].set_xlabel("frame")
-        top = axes[0, c].secondary_xaxis("top", functions=(lambda f: f / fps, lambda s: s * fps))
-        top.set_xlabel("s")
+        if fps:
+            top = axes[0, c].secondary_xaxis("top", functions=(lambda f: f / fps, lambda s: s * fps))
+            top.set_xlabel("s")
         for row in range(2):
             axes[row, c].grid(alpha=0.3)
     axes[0, 0].legend(loc="upper right", fontsize="small")  # "best" searches overlaps: slow

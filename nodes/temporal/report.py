@@ -19,6 +19,7 @@ import numpy as np
 from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence, Table
 from nodegraph.files import files_value, write_text_atomic
 
+from ..report.plots import plot_rigid_curves, rigid_to_euler_translation
 from .layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, ROTATION_NAMES, TRANSLATION_NAMES
 
 __all__ = ["rigid_curves", "roughness", "MotionReport"]
@@ -45,19 +46,20 @@ def rigid_curves(params: ParamSequence, where: str = "series") -> tuple[np.ndarr
     if all(n in names for n in MATRIX_NAMES) and all(n in names for n in FIT_TRANSLATION_NAMES):
         rot = values[:, [names.index(n) for n in MATRIX_NAMES]].reshape(-1, 3, 3)
         trans = values[:, [names.index(n) for n in FIT_TRANSLATION_NAMES]]
-        to_rotation = Rotation.from_matrix
     elif all(n in names for n in ROTATION_NAMES + TRANSLATION_NAMES):
         rot = values[:, [names.index(n) for n in ROTATION_NAMES]]
         trans = values[:, [names.index(n) for n in TRANSLATION_NAMES]]
-        to_rotation = Rotation.from_rotvec
     else:
         raise InputError(where, f"expected columns r00..r22 + tx ty tz or rot_x..z + trans_x..z, found "
                                 f"{names[:12]}{' ...' if len(names) > 12 else ''}")
     good = np.isfinite(rot.reshape(len(rot), -1)).all(1) & np.isfinite(trans).all(1)
     angles = np.full((len(values), 3), np.nan)
     if good.any():
-        euler = to_rotation(rot[good]).as_euler("xyz")
-        angles[good] = np.degrees(np.unwrap(euler, axis=0))
+        matrices = np.tile(np.eye(4), (int(good.sum()), 1, 1))
+        matrices[:, :3, :3] = rot[good] if rot.ndim == 3 else Rotation.from_rotvec(rot[good]).as_matrix()
+        matrices[:, :3, 3] = trans[good]
+        euler, _ = rigid_to_euler_translation(matrices)
+        angles[good] = np.degrees(np.unwrap(np.radians(euler), axis=0))
     trans = np.where(good[:, None], trans, np.nan)
     return angles, trans
 
@@ -136,7 +138,9 @@ class MotionReport(Node):
         table = Table(list(COLUMNS), rows)
         folder = Path(self.params.folder)
         mask = failed.values[:, 0] > 0.5 if failed is not None else np.zeros(frames, bool)
-        png = _plot(curves, true_curves, mask, folder / "motion.png", self.frames.start)
+        shown = ({"truth": true_curves} if true_curves is not None else {}) | curves
+        png = plot_rigid_curves(shown, folder / "motion.png", first_frame=self.frames.start, shaded=mask,
+                                dashed="truth" if true_curves is not None else None)
         self.progress(0.8, "motion plotted")
         lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
         lines += ["| " + " | ".join(str(v) for v in row) + " |" for row in rows]
@@ -145,30 +149,3 @@ class MotionReport(Node):
                                                              indent=1, allow_nan=True) + "\n")
         paths = [str(png), str(folder / "motion.md"), str(folder / "motion.json")]
         return {"files": files_value(paths), "table": table}
-
-
-def _plot(curves: dict[str, tuple[np.ndarray, np.ndarray]], truth: tuple[np.ndarray, np.ndarray] | None,
-          failed: np.ndarray, path: Path, first_frame: int) -> Path:
-    from matplotlib.figure import Figure
-
-    from ..report.plots import save_figure
-
-    fig = Figure(figsize=(12, 6))
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.08, top=0.93, wspace=0.22, hspace=0.3)
-    axes = fig.subplots(2, 3, sharex=True)
-    frames = first_frame + np.arange(len(failed))
-    for c in range(3):
-        for row in range(2):
-            ax = axes[row, c]
-            for f in frames[failed]:
-                ax.axvspan(f - 0.5, f + 0.5, color="0.9", linewidth=0)
-            if truth is not None:
-                ax.plot(frames, truth[row][:, c], color="black", linestyle="--", linewidth=1, label="truth")
-            for name, pair in curves.items():
-                ax.plot(frames, pair[row][:, c], linewidth=1, label=name)
-            ax.grid(alpha=0.3)
-        axes[0, c].set_title(f"rotation about {_AXES[c]} (deg)")
-        axes[1, c].set_title(f"translation {_AXES[c]} (cm)")
-        axes[1, c].set_xlabel("frame")
-    axes[0, 0].legend(loc="upper right", fontsize="small")
-    return save_figure(fig, path)
