@@ -30,11 +30,20 @@ def error_table(errors: dict[str, StabilizationErrors]) -> Table:
     return Table(list(COLUMNS), rows)
 
 
-def _markdown(table: Table) -> str:
+def markdown_table(table: Table, digits: int = 4) -> str:
+    """The table as markdown (floats with `digits` decimals)."""
     head = "| " + " | ".join(table.columns) + " |\n|" + "---|" * len(table.columns) + "\n"
-    body = "".join("| " + " | ".join(f"{c:.4f}" if isinstance(c, float) else str(c) for c in row) + " |\n"
+    body = "".join("| " + " | ".join(f"{c:.{digits}f}" if isinstance(c, float) else str(c) for c in row) + " |\n"
                    for row in table.rows)
     return head + body
+
+
+def write_table(folder: Path, stem: str, table: Table, digits: int = 4) -> list[Path]:
+    """Write `stem.md` (`markdown_table`) and `stem.json` ({"columns", "rows"}) atomically; return both paths."""
+    md, js = folder / f"{stem}.md", folder / f"{stem}.json"
+    write_text_atomic(md, markdown_table(table, digits))
+    write_text_atomic(js, json.dumps({"columns": table.columns, "rows": table.rows}, indent=1) + "\n")
+    return [md, js]
 
 
 class StabilizationReport(Node):
@@ -101,10 +110,7 @@ class StabilizationReport(Node):
                 f"{label} (aligned)": given[label] @ err.offset for label, err in errors.items()}
             if errors:
                 table = error_table(errors)
-                write_text_atomic(folder / "errors.md", _markdown(table))
-                write_text_atomic(folder / "errors.json", json.dumps(
-                    {"columns": table.columns, "rows": table.rows}, indent=1) + "\n")
-                written += [folder / "errors.md", folder / "errors.json"]
+                written += write_table(folder, "errors", table)
         self.progress(0.2, "errors measured")
         written.append(plot_head_motion(curves, folder / "head_motion.png", fps=capture.fps))
         self.progress(0.5, "head motion plotted")

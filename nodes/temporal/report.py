@@ -11,15 +11,15 @@ matplotlib and scipy are imported inside the functions that need them.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence, Table
-from nodegraph.files import files_value, write_text_atomic
+from nodegraph.files import files_value
 
 from ..report.plots import plot_rigid_curves, rigid_to_euler_translation
+from ..report.stabilization import write_table
 from .layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, ROTATION_NAMES, TRANSLATION_NAMES
 
 __all__ = ["rigid_curves", "roughness", "MotionReport"]
@@ -119,6 +119,8 @@ class MotionReport(Node):
             if seq.num_frames != frames:
                 raise InputError("series", f"expected {frames} frames in every series (as '{labels[0]}'), "
                                            f"'{name}' has {seq.num_frames}")
+        if truth is not None and "truth" in labels:
+            raise InputError("labels", f"'truth' names the connected truth; expected other names, found {labels}")
         if truth is not None and truth.num_frames != frames:
             raise InputError("truth", f"expected {frames} frames (as the series), found {truth.num_frames}")
         if failed is not None and (failed.num_frames != frames or failed.values.shape[1] < 1):
@@ -142,10 +144,5 @@ class MotionReport(Node):
         png = plot_rigid_curves(shown, folder / "motion.png", first_frame=self.frames.start, shaded=mask,
                                 dashed="truth" if true_curves is not None else None)
         self.progress(0.8, "motion plotted")
-        lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-        lines += ["| " + " | ".join(str(v) for v in row) + " |" for row in rows]
-        write_text_atomic(folder / "motion.md", "\n".join(lines) + "\n")
-        write_text_atomic(folder / "motion.json", json.dumps({"columns": list(COLUMNS), "rows": rows},
-                                                             indent=1, allow_nan=True) + "\n")
-        paths = [str(png), str(folder / "motion.md"), str(folder / "motion.json")]
+        paths = [str(png)] + [str(f) for f in write_table(folder, "motion", table, digits=6)]
         return {"files": files_value(paths), "table": table}

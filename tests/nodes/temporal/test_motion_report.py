@@ -61,3 +61,5 @@ def test_motion_report_tables_errors_against_the_truth(tmp_path):
     assert (tmp_path / "motion.png").stat().st_size > 10_000
     with pytest.raises(Exception, match="labels"):
         run_node(MotionReport, {"folder": str(tmp_path), "labels": ["a", "a"]}, series=[matrix, matrix])
+    with pytest.raises(Exception, match="truth"):
+        run_node(MotionReport, {"folder": str(tmp_path), "labels": ["truth"]}, series=[matrix], truth=matrix)
