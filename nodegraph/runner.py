@@ -280,6 +280,9 @@ class _BackgroundStores:
 
 _STORES = _BackgroundStores()
 
+_IN_PROCESS = ("sync", "threads")
+"""Schedulers whose tasks run in this process (shared joins, background cache writes, preloads)."""
+
 
 def _preload(modules: Sequence[str]) -> None:
     """Import slow modules that planned nodes will import (`Node.preload`) in a background
@@ -481,7 +484,7 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
             import dask.multiprocessing
 
             get, kwargs = dask.multiprocessing.get, ({"num_workers": workers} if workers else {})
-        _STORES.active = _COMBINED.active = scheduler in ("sync", "threads")
+        _STORES.active = _COMBINED.active = scheduler in _IN_PROCESS
         try:
             with _Progress():
                 out = get(dsk, keys, **kwargs)
@@ -593,7 +596,7 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
         reporter = _Reporter(plan, names, mode)
         gpu_tasks = {n for n in names if not plan.tasks[n].hit and plan.tasks[n].device != "cpu"
                      and plan.nodes[plan.tasks[n].node].resources}
-        if scheduler in ("sync", "threads"):
+        if scheduler in _IN_PROCESS:
             _preload([m for n in names if not plan.tasks[n].hit for m in plan.nodes[plan.tasks[n].node].preload])
         metas, results = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter, workers,
                                   {n: dict(plan.nodes[plan.tasks[n].node].resources) for n in gpu_tasks})

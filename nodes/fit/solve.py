@@ -237,11 +237,14 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     def full(x_free: Tensor, x_fixed: Tensor) -> Tensor:
         return x_fixed.index_copy(1, free_idx, x_free) if n_p else x_fixed
 
+    def unknowns(trans: Tensor, weights: Tensor) -> Tensor:  # x = [omega = 0, t, active weights]
+        return torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans, weights[:, shapes]], 1)
+
     def linearize(rot: Tensor, trans: Tensor, weights: Tensor) -> tuple[Callable[[Tensor], Tensor], Tensor]:
         fn = _stage_residuals(neutral, deltas, views, anchors, rot, weights, shapes, w_lm, prior=prior,
                               edge_weight=edge_weight, rigid_prior=rigid_prior,
                               rigid_prior_weight=rigid_prior_weight)
-        x0 = torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans, weights[:, shapes]], 1)
+        x0 = unknowns(trans, weights)
         return (lambda xf: fn(full(xf, x0))), x0[:, free_idx]
 
     def state_at(rot: Tensor, x: Tensor) -> PoseState:
@@ -274,8 +277,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
                 break
             gain = (cost - cost_new) / cost.clamp_min(1e-12)
             running = running & ~(better & (gain < 1e-4))
-            new = state_at(rot, full(x + step, torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans,
-                                                          weights[:, shapes]], 1)))
+            new = state_at(rot, full(x + step, unknowns(trans, weights)))
             rot = torch.where(better[:, None, None], new.rot, rot)
             trans = torch.where(better[:, None], new.trans, trans)
             weights = torch.where(better[:, None], new.weights, weights)
