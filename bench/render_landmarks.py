@@ -17,23 +17,10 @@ CUDA rows appear when a GPU is present.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 import torch
-
-
-def _median_ms(fn, repeat: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
+from _timing import median_ms
 
 
 def main() -> None:
@@ -83,25 +70,25 @@ def main() -> None:
                 return out
 
             with torch.no_grad():
-                fwd = _median_ms(forward, args.repeat) / b
-            both = _median_ms(lambda: forward(True), args.repeat) / b
+                fwd = median_ms(forward, args.repeat) / b
+            both = median_ms(lambda: forward(True), args.repeat) / b
             rows.append((f"render {size}^2 fwd", device, fwd))
             rows.append((f"render {size}^2 fwd+bwd", device, both))
 
         photo = torch.as_tensor(astronaut().astype(np.float32) / 255.0, device=device)[None]
         detector, mesh = load_face_detector(device), load_face_mesh(device)
         det = detect_faces(photo, detector)
-        rows.append(("detector 512^2 photo", device, _median_ms(lambda: detect_faces(photo, detector), args.repeat)))
+        rows.append(("detector 512^2 photo", device, median_ms(lambda: detect_faces(photo, detector), args.repeat)))
         with torch.no_grad():
             rows.append(("face mesh fwd (crop+net)", device,
-                         _median_ms(lambda: face_landmarks(photo, det.boxes, mesh), args.repeat)))
+                         median_ms(lambda: face_landmarks(photo, det.boxes, mesh), args.repeat)))
 
         def mesh_backward():
             x = photo.clone().requires_grad_()
             points, _ = face_landmarks(x, det.boxes, mesh)
             points.sum().backward()
 
-        rows.append(("face mesh fwd+bwd", device, _median_ms(mesh_backward, args.repeat)))
+        rows.append(("face mesh fwd+bwd", device, median_ms(mesh_backward, args.repeat)))
     print(f"{'what':28s} {'device':6s} {'ms/frame':>9s}")
     for name, device, ms in rows:
         print(f"{name:28s} {device:6s} {ms:9.1f}")

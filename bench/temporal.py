@@ -19,21 +19,11 @@ Run: nice python bench/temporal.py [--size 256] [--pairs 4] [--threads 2] [--fra
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 
 import numpy as np
 import torch
-
-
-def _ms(fn, repeat: int = 3) -> float:
-    fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
+from _timing import median_ms
 
 
 def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
@@ -59,7 +49,7 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
         img = torch.as_tensor(plates.pixels).permute(0, 3, 1, 2)
         with torch.no_grad():
             flow = dense_flow(img[:1], img[1:])
-            ms = _ms(lambda: dense_flow(img[:1], img[1:]))
+            ms = median_ms(lambda: dense_flow(img[:1], img[1:]))
         tag = f", motion x{amplitude:.0f}"
         results.setdefault("ours (robust Horn-Schunck)" + tag, []).append((endpoint_error(flow, truth, mask).item(), ms))
         results.setdefault("|true motion|" + tag, []).append((truth.norm(dim=1)[mask].mean().item(), 0.0))
@@ -71,7 +61,7 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
                              ("DIS fast", cv2.DISOPTICAL_FLOW_PRESET_FAST)):
             dis = cv2.DISOpticalFlow_create(preset)
             d = dis.calc(u8[0], u8[1], None)
-            ms = _ms(lambda: dis.calc(u8[0], u8[1], None))
+            ms = median_ms(lambda: dis.calc(u8[0], u8[1], None))
             epe = endpoint_error(torch.as_tensor(d).permute(2, 0, 1)[None], truth, mask).item()
             results.setdefault(name + tag, []).append((epe, ms))
     return sorted([(name, float(np.mean([r[0] for r in rows])), float(np.median([r[1] for r in rows])))
