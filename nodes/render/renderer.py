@@ -39,6 +39,7 @@ at the top: import it from node `run()` methods only.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -162,7 +163,6 @@ def _incidence(faces: Tensor, num_vertices: int, dtype: torch.dtype) -> _Inciden
     def csr(r: Tensor, c: Tensor, v: Tensor, shape: tuple[int, int]) -> Tensor:
         return torch.sparse_coo_tensor(torch.stack([r, c]), v, shape).coalesce().to_sparse_csr()
 
-    import warnings
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
         corner = tuple(csr(rows, faces[:, k], ones, (t, num_vertices)) for k in range(3))
