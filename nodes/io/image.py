@@ -164,9 +164,21 @@ def _check_pattern(path: str) -> None:
         raise InputError("path", f"expected a numbered pattern such as 'img.%04d.exr', found '{path}'")
 
 
+def _single_file(path: str) -> bool:
+    """True for a path without a frame token: one image file, read as a one-frame sequence."""
+    if frame_token(path) is not None:
+        return False
+    if not os.path.isfile(path):
+        raise InputError("path", f"expected a numbered pattern such as 'img.%04d.exr' or an existing image "
+                                 f"file, found '{path}'")
+    return True
+
+
 def image_frame_count(path: str, first_frame: int | None = None) -> int:
-    """Frames of a numbered image pattern: highest number found - first number + 1 (0 if none)."""
-    _check_pattern(path)
+    """Frames of a numbered image pattern: highest number found - first number + 1 (0 if none);
+    1 for a single image file (a path without a frame token)."""
+    if _single_file(path):
+        return 1
     numbers = find_frame_numbers(path)
     first = first_frame if first_frame is not None else (numbers[0] if numbers else None)
     return max(0, numbers[-1] - first + 1) if numbers and first is not None else 0
@@ -176,8 +188,11 @@ def image_frame_files(path: str, frames: range | None = None,
                       first_frame: int | None = None) -> list[Path]:
     """Existing files of run frames `frames` of a numbered pattern (None = every file).
 
-    Run frame f is file number first_frame + f (first_frame None = the lowest number found).
+    Run frame f is file number first_frame + f (first_frame None = the lowest number found);
+    a single image file is frame 0.
     """
+    if _single_file(path):
+        return [Path(path)] if frames is None or 0 in frames else []
     if frames is None:
         return pattern_files(path)
     numbers = find_frame_numbers(path)
@@ -193,7 +208,7 @@ def load_image_sequence(path: str, frames: range, *, first_frame: int | None = N
     """Read run frames `frames` of a numbered image pattern (only those files, plus frame 0's header).
 
     Args:
-        path: pattern such as `plate.%04d.exr` or `cam0.####.png`.
+        path: pattern such as `plate.%04d.exr` or `cam0.####.png`, or one image file (frame 0).
         frames: run frames; frame f is file number first_frame + f.
         first_frame: number of the file of frame 0; None = the lowest number found.
         fps: frames per second of the sequence.
@@ -209,14 +224,15 @@ def load_image_sequence(path: str, frames: range, *, first_frame: int | None = N
         raise InputError("colour_space", f"expected one of {list(get_args(ColourSpaceChoice))}, "
                                          f"found {colour_space!r}")
     format_of(path, _read_formats())
-    _check_pattern(path)
-    numbers = find_frame_numbers(path)
+    single = _single_file(path)
+    numbers = [0] if single else find_frame_numbers(path)
     first = first_frame if first_frame is not None else (numbers[0] if numbers else None)
     if first is None:
         raise InputError("path", f"expected files matching '{path}', found none")
 
     def file_of(frame: int) -> str:
-        file = expand_frame_pattern(path, first + frame)
+        file = (path if frame == 0 else f"{path} (frame {frame})") if single else \
+            expand_frame_pattern(path, first + frame)
         if not os.path.isfile(file):
             raise InputError("path", f"{frame_where(frame, file)}: expected the file of this frame, "
                                      "found it missing")

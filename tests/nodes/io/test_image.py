@@ -146,6 +146,20 @@ def test_error_truncated_file_names_file_and_frame(tmp_path):
         load(path)
 
 
+def test_a_single_image_file_is_a_one_frame_sequence(tmp_path):
+    images = make_images(1, channels=("R", "G", "B"))
+    save(images, str(tmp_path / "still.%04d.png"))
+    single = tmp_path / "photo.png"
+    (tmp_path / "still.0000.png").rename(single)
+    got = load(str(single))
+    assert got.pixels.shape == (1, 6, 7, 3) and got.colour_space == "srgb"
+    np.testing.assert_allclose(got.pixels, quantize(images.pixels, 255), atol=1e-6)
+    from nodes.landmarks import LoadFrames
+
+    frames = run_node(LoadFrames, {"path": str(single)})["images"]
+    np.testing.assert_array_equal(frames.pixels, got.pixels)
+
+
 def test_error_no_pattern_and_no_files(tmp_path):
     with pytest.raises(NodeError, match="expected a numbered pattern"):
         load(str(tmp_path / "plate.exr"))
