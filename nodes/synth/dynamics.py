@@ -212,20 +212,20 @@ def vertex_neighbours(rest: np.ndarray, faces: np.ndarray, *, k: int = 6) -> np.
 def smoothing_matrix(rest: np.ndarray, *, sigma_cm: float = 0.8):
     """Row-normalized Gaussian smoothing over positions (scipy.sparse csr, (V, V)).
 
-    Weights `exp(-d^2 / (2 sigma^2))` for vertices within 2.5 sigma of each other.
+    Weights `exp(-d^2 / (2 sigma^2))` for vertices within 2.5 sigma of each other and 2 for the
+    vertex itself (the self pair and the added identity of the first version).
     """
     from scipy import sparse
     from scipy.spatial import cKDTree
 
     rest = np.asarray(rest, np.float64)
-    tree = cKDTree(rest)
-    pairs = tree.sparse_distance_matrix(tree, 2.5 * sigma_cm, output_type="coo_matrix")
-    weights = np.exp(-pairs.data ** 2 / (2 * sigma_cm ** 2))
+    pairs = cKDTree(rest).query_pairs(2.5 * sigma_cm, output_type="ndarray")  # i < j; 3x faster than
+    weights = np.exp(-((rest[pairs[:, 0]] - rest[pairs[:, 1]]) ** 2).sum(1) / (2 * sigma_cm ** 2))  # distances
     v = len(rest)
-    matrix = sparse.csr_matrix((np.concatenate([weights, np.ones(v)]),
-                                (np.concatenate([pairs.row, np.arange(v)]),
-                                 np.concatenate([pairs.col, np.arange(v)]))), shape=(v, v))
-    matrix.sum_duplicates()
+    diagonal = np.arange(v)
+    matrix = sparse.csr_matrix((np.concatenate([weights, weights, np.full(v, 2.0)]),
+                                (np.concatenate([pairs[:, 0], pairs[:, 1], diagonal]),
+                                 np.concatenate([pairs[:, 1], pairs[:, 0], diagonal]))), shape=(v, v))
     return sparse.diags(1.0 / np.asarray(matrix.sum(axis=1)).ravel()) @ matrix
 
 
