@@ -80,17 +80,15 @@ def restrict_face_model(model: FaceModel, keep: np.ndarray, *, keep_faces: bool 
     Returns:
         A new FaceModel with N vertices; vertex i is the old vertex keep[i].
     """
-    v = model.neutral.shape[0]
+    from ..mesh.regions import restrict_faces
+
     keep = np.asarray(keep, dtype=np.int64)
-    old_to_new = np.full(v, -1, np.int64)
-    old_to_new[keep] = np.arange(len(keep))
-    faces = np.zeros((0, 3), np.int32)
+    faces, inside, old_to_new = restrict_faces(model.faces, keep, model.neutral.shape[0])
     uv, uv_faces = None, None
-    if keep_faces and model.faces.size:
-        inside = (old_to_new[model.faces] >= 0).all(axis=1)
-        faces = old_to_new[model.faces[inside]].astype(np.int32)
-        if model.uv is not None and model.uv_faces is not None:
-            uv, uv_faces = model.uv, model.uv_faces[inside]
+    if not keep_faces:
+        faces = np.zeros((0, 3), np.int32)
+    elif model.uv is not None and model.uv_faces is not None:
+        uv, uv_faces = model.uv, model.uv_faces[inside]
     groups = {name: _remap(old_to_new, idx) for name, idx in model.groups.items()}
     return FaceModel(
         neutral=np.ascontiguousarray(model.neutral[keep]),
