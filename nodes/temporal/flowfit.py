@@ -33,7 +33,7 @@ from torch import Tensor
 from ..fit.energy import axis_angle_to_rotmat
 from ..flow.geometric import Coverage, coverage, surface_flow
 
-__all__ = ["FlowModel", "Terms", "solve_frames", "PRIOR_SCALES"]
+__all__ = ["FlowModel", "Terms", "solve_frames", "frame_energies", "PRIOR_SCALES"]
 
 PRIOR_SCALES = (0.01, 0.1, 0.1)
 """Units of the prior: rotation 0.01 rad, translation 0.1 cm, weights 0.1."""
@@ -296,3 +296,21 @@ def solve_frames(model: FlowModel, x0: Tensor, terms: Terms, *, iterations: int 
         elif bool(better.any()):
             state = setup(x)
     return x
+
+
+def frame_energies(model: FlowModel, x: Tensor, terms: Terms) -> Tensor:
+    """E_i of B frames at parameters `x` (module docstring), no solve.
+
+    Args:
+        model: the FlowModel.
+        x: (B, 6 + K) float64 parameters of the frames.
+        terms: their energy's terms (as for `solve_frames`).
+    Returns:
+        (B,) float64 energies; the plate-flow terms are mean squared flow differences, pixels^2.
+    """
+    cov_prev = model.cover(terms.prev_x)
+    cov_self = model.cover(x)
+    r = _residuals(model, x.index_select(1, model.free), terms, cov_prev, cov_self,
+                   model.corners(terms.prev_x, cov_prev), model.corners(terms.next_x, cov_self),
+                   model.prepare(x, cov_prev), model.prepare(x, cov_self))
+    return (r * r).sum(1)

@@ -97,12 +97,18 @@ class FlowInfill(_FlowNode):
 
     type_name = "temporal.FlowInfill"
     version = 1
-    kind = windowed(MAX_GAP)
+    kind = windowed(MAX_GAP + 1)  # the run, its good neighbours and their pairs
 
     class Params(_SolveParams):
         max_gap: int = Param(MAX_GAP, ge=1, le=MAX_GAP, description="Longest run of failed frames solved; "
                              "longer runs stay failed.")
         sweeps: int = Param(1, ge=1, le=4, description="Forward + backward passes over a run.")
+        reject_ratio: float = Param(6.0, gt=1, description="A solved frame stays failed when its mean squared "
+                                    "plate-flow mismatch is above this many times that of the run's good "
+                                    "neighbours (the plate does not follow the face there: no face, an "
+                                    "occluder, a cut).")
+        floor_px2: float = Param(0.25, gt=0, description="Least neighbour mismatch the ratio is taken of, "
+                                 "pixels^2 (exact plate flow has none).")
 
     fitted = In(ParamSequence, doc="Fitted parameters (r00..r22 + tx ty tz cm as nodes.fit, or rot_x..z "
                     "rad + trans_x..z cm; weights by shape name).")
@@ -122,8 +128,9 @@ class FlowInfill(_FlowNode):
         mask = _failed_mask(failed, len(x))
         at_start = self.frames.start == self.full_frames.start if len(self.full_frames) else True
         at_end = self.frames.stop == self.full_frames.stop if len(self.full_frames) else True
-        x, still = infill(fm, x, flows, plate_flow.valid, mask, max_gap=p.max_gap, sweeps=p.sweeps,
-                          iterations=p.iterations, at_start=at_start, at_end=at_end, progress=self.progress)
+        x, still, _ = infill(fm, x, flows, plate_flow.valid, mask, max_gap=p.max_gap, sweeps=p.sweeps,
+                             iterations=p.iterations, at_start=at_start, at_end=at_end,
+                             reject_ratio=p.reject_ratio, floor_px2=p.floor_px2, progress=self.progress)
         return {"infilled": self._pack(fitted, x, layout, have),
                 "still_failed": ParamSequence(still.astype(np.float32)[:, None], ["failed"])}
 

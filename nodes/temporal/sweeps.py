@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .flowfit import FlowModel, Terms, solve_frames
+from .flowfit import FlowModel, Terms, frame_energies, solve_frames
 
 __all__ = ["failed_runs", "infill", "smooth"]
 
@@ -51,26 +51,45 @@ class _Problem:
         self.plate_weight, self.self_weight = plate_weight, self_weight
         self.prior, self.prior_weight = prior, prior_weight
 
-    def solve(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True,
-              start: Tensor | None = None) -> Tensor:
+    def _terms(self, i: int, x: Tensor, use_prev: bool, use_next: bool) -> Terms | None:
         f = len(x)
         prev_on = use_prev and i > 0 and self.usable[i - 1] and self.pair_valid[i - 1]
         next_on = use_next and i + 1 < f and self.usable[i + 1] and self.pair_valid[i]
         if not (prev_on or next_on):
-            return x[i]
+            return None
         ip, inx = max(i - 1, 0), min(i + 1, f - 1)
         flat = self.flows
-        terms = Terms(x[ip:ip + 1], x[inx:inx + 1], torch.tensor([prev_on]), torch.tensor([next_on]),
-                      flat[ip:ip + 1], flat[i:i + 1], self.plate_weight, self.self_weight,
-                      None if self.prior is None else self.prior[i:i + 1], self.prior_weight)
+        return Terms(x[ip:ip + 1], x[inx:inx + 1], torch.tensor([prev_on]), torch.tensor([next_on]),
+                     flat[ip:ip + 1], flat[i:i + 1], self.plate_weight, self.self_weight,
+                     None if self.prior is None else self.prior[i:i + 1], self.prior_weight)
+
+    def solve(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True,
+              start: Tensor | None = None) -> Tensor:
+        terms = self._terms(i, x, use_prev, use_next)
+        if terms is None:
+            return x[i]
         x0 = (x[i] if start is None else start)[None]
         return solve_frames(self.model, x0, terms, iterations=self.iterations)[0]
+
+    def mismatch(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True) -> float:
+        """Mean squared plate-flow mismatch of frame i per flow pair it has (pixels^2); NaN if none."""
+        terms = self._terms(i, x, use_prev, use_next)
+        if terms is None:
+            return float("nan")
+        pairs = int(terms.prev_on[0]) + int(terms.next_on[0])
+        return float(frame_energies(self.model, x[i:i + 1], terms)[0]) / pairs
 
 
 def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, failed: np.ndarray, *,
            max_gap: int, sweeps: int = 1, iterations: int = 8, at_start: bool = True, at_end: bool = True,
-           progress: Callable[[float, str], None] | None = None) -> tuple[Tensor, np.ndarray]:
+           reject_ratio: float = 6.0, floor_px2: float = 0.25,
+           progress: Callable[[float, str], None] | None = None) -> tuple[Tensor, np.ndarray, np.ndarray]:
     """Solve the failed frames from their neighbours by plate flow (module docstring).
+
+    A solved frame whose mean squared plate-flow mismatch (`_Problem.mismatch`, both pairs)
+    is above `reject_ratio` times that of the run's good neighbours (pairs (a - 2, a - 1) and
+    (b + 1, b + 2); at least `floor_px2`) stays failed: the plate itself does not follow the
+    face there (no face in the frame, an occluder, a cut).
 
     Args:
         model: FlowModel (its free unknowns are solved).
@@ -82,13 +101,16 @@ def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, f
         sweeps: forward + backward passes.
         iterations: LM iterations per frame solve.
         at_start, at_end: frame 0 / F - 1 is the shot's first / last frame (not a chunk edge).
+        reject_ratio, floor_px2: the acceptance test above.
         progress: called with (fraction, message).
     Returns:
-        (F, 6 + K) parameters and (F,) bool frames still failed.
+        (F, 6 + K) parameters, (F,) bool frames still failed and (F,) the mismatch of each
+        solved frame, pixels^2 (NaN where not solved).
     """
     x = x.clone()
     failed = np.asarray(failed, bool).copy()
     f = len(x)
+    mismatches = np.full(f, np.nan)
     runs = failed_runs(failed)
     todo = []
     for a, b in runs:
@@ -116,10 +138,21 @@ def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, f
                     prob.usable = usable
                 if (a == 0 or b == f - 1) and not first:
                     continue
-        failed[a:b + 1] = False
+        # Accept a solved frame only if its plate flow is explained about as well as at the run's
+        # good neighbours (a frame with no face, or a cut, cannot be: its flow is noise).
+        ref = [prob.mismatch(a - 1, x, use_next=False) if a >= 2 else float("nan"),
+               prob.mismatch(b + 1, x, use_prev=False) if b + 2 < f else float("nan")]
+        ref = [r for r in ref if np.isfinite(r)]
+        limit = reject_ratio * max(float(np.median(ref)) if ref else 0.0, floor_px2)
+        for i in range(a, b + 1):
+            mismatch = prob.mismatch(i, x)
+            mismatches[i] = mismatch
+            failed[i] = not mismatch <= limit
         if progress is not None:
-            progress((n + 1) / len(todo), f"infilled frames {a}-{b}")
-    return x, failed
+            kept = int(failed[a:b + 1].sum())
+            progress((n + 1) / len(todo), f"infilled frames {a}-{b}" + (f" ({kept} left failed: flow mismatch "
+                                                                        f"above {limit:.2f} px^2)" if kept else ""))
+    return x, failed, mismatches
 
 
 def smooth(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, usable: np.ndarray, *,

@@ -120,3 +120,32 @@ def test_hybrid_reduces_jitter_without_leaving_the_plates(shot):
     assert jitter(out) < 0.5 * jitter(noisy)
     assert err(out) <= err(noisy)
     assert err(out) < err(avg)
+
+
+def test_flow_infill_leaves_frames_without_a_face_failed():
+    """A flagged frame whose plate shows no face (noise; a flat grey frame) cannot be explained by
+    any head pose: its plate-flow mismatch after the solve is far above its good neighbours', so it
+    stays failed instead of being "solved" into a garbage pose (and so do frames that pair with it)."""
+    import dataclasses
+
+    scene = make_scene(SIZE)
+    names = scene.model.expression_names
+    truth = head_motion(9, names, seed=2, mouth_frames=(1, 8))
+    plates = render_plates(scene, truth)
+    pixels = plates.pixels.copy()
+    pixels[4] = np.clip(pixels[4].mean() + 0.1 * np.random.default_rng(0).standard_normal(pixels[4].shape), 0, 1)
+    flow = run_node(OpticalFlow, images=dataclasses.replace(plates, pixels=pixels))["flow"]
+    for run in ([4], [3, 4, 5]):
+        failed = np.zeros(9, bool)
+        failed[run] = True
+        fitted = truth.copy()
+        fitted[failed] = 0.0
+        out = run_node(FlowInfill, {"iterations": 6, "stride": 2}, fitted=_seq(fitted, names),
+                       failed=ParamSequence(failed[:, None].astype(np.float32), ["failed"]), plate_flow=flow,
+                       model=scene.model, camera=scene.camera)
+        np.testing.assert_array_equal(out["still_failed"].values[:, 0] > 0.5, failed)
+    clean = run_node(OpticalFlow, images=plates)["flow"]  # the same run on the real plates is solved
+    out = run_node(FlowInfill, {"iterations": 6, "stride": 2}, fitted=_seq(np.where(failed[:, None], 0.0, truth), names),
+                   failed=ParamSequence(failed[:, None].astype(np.float32), ["failed"]), plate_flow=clean,
+                   model=scene.model, camera=scene.camera)
+    assert out["still_failed"].values.sum() == 0
