@@ -9,7 +9,7 @@ from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Pa
 from nodegraph.files import files_value
 from nodegraph.models import load_model, save_model
 
-__all__ = ["SaveModel", "LoadModel"]
+__all__ = ["BUNDLED_REMOVAL", "SaveModel", "LoadModel"]
 
 _SUFFIXES = (".safetensors", ".npz")
 
@@ -40,23 +40,34 @@ class SaveModel(Node):
         return {"files": files_value([self.params.path])}
 
 
+BUNDLED_REMOVAL = Path(__file__).resolve().parent.parent / "data" / "dynamics" / "removal_ict_face.safetensors"
+"""The removal network F shipped with the package: trained by `graphs/dynamics_train.json` (its
+defaults with 80 epochs, seed 0) on the ICT head's 'face' region (9409 vertices); see its README."""
+
+
 class LoadModel(Node):
-    """Read a trained network written by dynamics.SaveModel."""
+    """Read a trained network written by dynamics.SaveModel (or the bundled removal network)."""
 
     type_name = "dynamics.LoadModel"
     version = 1
     kind = SEQUENCE
 
     class Params(NodeParams):
-        path: str = Param(..., input_file=True, description=".safetensors (or .npz) model file")
+        path: str = Param("", input_file=True, description=".safetensors (or .npz) model file; '' = the bundled "
+                          "removal network for captures of the ICT head's 'face' region "
+                          "(io.LoadFaceModel region 'face'), trained by graphs/dynamics_train.json")
 
     model = Out(TorchModel, doc="the network")
 
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        return [Path(self.params.path) if self.params.path else BUNDLED_REMOVAL]
+
     def run(self) -> dict:
-        _check_suffix(self.params.path)
-        if not Path(self.params.path).is_file():
-            raise InputError("path", f"expected an existing model file, found no file '{self.params.path}'")
+        path = self.params.path or str(BUNDLED_REMOVAL)
+        _check_suffix(path)
+        if not Path(path).is_file():
+            raise InputError("path", f"expected an existing model file, found no file '{path}'")
         try:
-            return {"model": load_model(self.params.path)}
+            return {"model": load_model(path)}
         except ValueError as err:
             raise InputError("path", str(err)) from err

@@ -335,6 +335,8 @@ class DynamicCapture(NamedTuple):
         segments: (F, 1) segment index of each frame (name "segment").
         neutral: one-frame skull-frame neutral of the identity (1, V, 3), cm.
         offsets: (F, V, 3) float32 truth dynamic offsets u in the skull frame, cm.
+        stabilized: the capture without noise in the true skull frame (F, V, 3), cm: what a
+            perfect stabilization gives (dynamics kept).
     """
 
     capture: MeshSequence
@@ -343,6 +345,7 @@ class DynamicCapture(NamedTuple):
     segments: ParamSequence
     neutral: MeshSequence
     offsets: np.ndarray
+    stabilized: MeshSequence
 
 
 def simulate_dynamics(model: FaceModel, *, motions: Sequence[str], expressions: Sequence[str],
@@ -478,7 +481,8 @@ def simulate_dynamics(model: FaceModel, *, motions: Sequence[str], expressions: 
                           skull=RigidSequence(matrices=mats),
                           segments=ParamSequence(values=segment_ids, names=["segment"]),
                           neutral=mesh(base[None].copy()),
-                          offsets=offsets.reshape(-1, v, 3))
+                          offsets=offsets.reshape(-1, v, 3),
+                          stabilized=mesh(quasi_local + offsets.reshape(-1, v, 3)))
 
 
 class DynamicPerformance(Node):
@@ -541,6 +545,8 @@ class DynamicPerformance(Node):
     skull = Out(RigidSequence, doc="skull-to-world transforms")
     segments = Out(ParamSequence, doc="segment index of each frame ('segment')")
     neutral = Out(MeshSequence, per_frame=False, doc="skull-frame neutral of the identity (1 frame)")
+    stabilized = Out(MeshSequence, doc="the capture without noise in the true skull frame (cm): what a perfect "
+                                       "stabilization gives")
 
     def frame_count(self) -> int:
         p = self.params

@@ -33,6 +33,11 @@ def test_simulate_dynamics_shapes_and_truth():
     # held expression: the quasistatic sequence is rigid (constant in the skull frame)
     local = stabilize_points(out.quasistatic.vertices[:40], out.skull.matrices[:40])
     assert np.abs(local - local[0]).max() < 1e-3
+    # stabilized: the (noise-free) capture in the true skull frame
+    np.testing.assert_allclose(out.stabilized.vertices, stabilize_points(out.capture.vertices, out.skull.matrices),
+                               atol=2e-4)
+    noisy = _small(noise_cm=0.05)
+    np.testing.assert_allclose(noisy.stabilized.vertices, out.stabilized.vertices, atol=1e-6)
 
 
 def test_simulate_dynamics_jiggle_where_loose_and_with_fast_motion():
