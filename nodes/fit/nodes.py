@@ -544,6 +544,7 @@ class FitReport(Node):
     class Params(NodeParams):
         folder: str = Param(..., output_file=True, description="Folder of fit.%04d.png files.")
         blend: float = Param(0.5, ge=0, le=1, description="Opacity of the render over the plate.")
+        every: int = Param(1, ge=1, description="Write the frames whose index is a multiple of this (1 = all).")
 
     images = In(ImageSequence, doc="Plate of the first camera.")
     landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks, pixels.")
@@ -574,6 +575,8 @@ class FitReport(Node):
         written = []
         folder = Path(self.params.folder)
         for i, frame in enumerate(self.frames):
+            if frame % self.params.every:
+                continue
             img = plate[i]
             points = [(landmarks.points[i], (0.0, 1.0, 0.0))]
             v = fitted.values[i]

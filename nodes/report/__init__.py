@@ -2,4 +2,4 @@
 
 from .._areas import import_modules
 
-import_modules(__name__, ["metrics", "plots", "stabilization", "html"])
+import_modules(__name__, ["metrics", "plots", "stabilization", "html", "dynamics_map"])

@@ -2,4 +2,4 @@
 
 from .._areas import import_modules
 
-import_modules(__name__, ["expressions", "head_motion", "performance", "dynamics"])
+import_modules(__name__, ["expressions", "head_motion", "performance", "dynamics", "camera"])

@@ -15,14 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence, Table
+from nodegraph import (SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence, RigidSequence,
+                       Table)
 from nodegraph.files import files_value
 
 from ..report.plots import plot_rigid_curves, rigid_to_euler_translation
 from ..report.stabilization import write_table
 from .layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, ROTATION_NAMES, TRANSLATION_NAMES
 
-__all__ = ["rigid_curves", "roughness", "MotionReport"]
+__all__ = ["rigid_curves", "matrix_curves", "roughness", "MotionReport"]
 
 _AXES = ("x", "y", "z")
 
@@ -53,14 +54,22 @@ def rigid_curves(params: ParamSequence, where: str = "series") -> tuple[np.ndarr
         raise InputError(where, f"expected columns r00..r22 + tx ty tz or rot_x..z + trans_x..z, found "
                                 f"{names[:12]}{' ...' if len(names) > 12 else ''}")
     good = np.isfinite(rot.reshape(len(rot), -1)).all(1) & np.isfinite(trans).all(1)
-    angles = np.full((len(values), 3), np.nan)
+    matrices = np.full((len(values), 4, 4), np.nan)
+    matrices[good] = np.eye(4)
+    matrices[good, :3, :3] = rot[good] if rot.ndim == 3 else Rotation.from_rotvec(rot[good]).as_matrix()
+    matrices[good, :3, 3] = trans[good]
+    return matrix_curves(matrices)
+
+
+def matrix_curves(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`rigid_curves` of (F, 4, 4) rigid transforms (frames with non-finite entries are NaN)."""
+    matrices = np.asarray(matrices, np.float64)
+    good = np.isfinite(matrices.reshape(len(matrices), -1)).all(1)
+    angles = np.full((len(matrices), 3), np.nan)
+    trans = np.full((len(matrices), 3), np.nan)
     if good.any():
-        matrices = np.tile(np.eye(4), (int(good.sum()), 1, 1))
-        matrices[:, :3, :3] = rot[good] if rot.ndim == 3 else Rotation.from_rotvec(rot[good]).as_matrix()
-        matrices[:, :3, 3] = trans[good]
-        euler, _ = rigid_to_euler_translation(matrices)
+        euler, trans[good] = rigid_to_euler_translation(matrices[good])
         angles[good] = np.degrees(np.unwrap(np.radians(euler), axis=0))
-    trans = np.where(good[:, None], trans, np.nan)
     return angles, trans
 
 
@@ -101,13 +110,15 @@ class MotionReport(Node):
 
     series = In(ParamSequence, many=True, doc="Fitted parameter sequences to compare (e.g. raw, averaged, hybrid).")
     truth = In(ParamSequence, optional=True, doc="True parameters, when known (synthetic plates).")
+    truth_rigid = In(RigidSequence, optional=True, doc="Or the truth as model-to-world transforms (e.g. the skull of "
+                                                       "a synthetic performance, rendered by a camera in its world).")
     failed = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0 where the fit failed (shaded).")
     files = Out(Files, doc="The files written.")
     table = Out(Table, doc="Per series: roughness (mean squared second difference) of the Euler angles "
                            "(deg^2) and translation (cm^2), and median error to the truth (deg, cm).")
 
     def run(self, series: list[ParamSequence], truth: ParamSequence | None,
-            failed: ParamSequence | None) -> dict:
+            failed: ParamSequence | None, truth_rigid: RigidSequence | None = None) -> dict:
         if not series:
             raise InputError("series", "connect at least one parameter sequence, found none")
         labels = list(self.params.labels) + [f"series_{i + 1}" for i in range(len(self.params.labels), len(series))]
@@ -119,7 +130,12 @@ class MotionReport(Node):
             if seq.num_frames != frames:
                 raise InputError("series", f"expected {frames} frames in every series (as '{labels[0]}'), "
                                            f"'{name}' has {seq.num_frames}")
-        if truth is not None and "truth" in labels:
+        if truth is not None and truth_rigid is not None:
+            raise InputError("truth_rigid", "expected the truth on one port, found both 'truth' and 'truth_rigid' "
+                                            "connected")
+        if truth_rigid is not None and truth_rigid.num_frames != frames:
+            raise InputError("truth_rigid", f"expected {frames} frames (as the series), found {truth_rigid.num_frames}")
+        if (truth is not None or truth_rigid is not None) and "truth" in labels:
             raise InputError("labels", f"'truth' names the connected truth; expected other names, found {labels}")
         if truth is not None and truth.num_frames != frames:
             raise InputError("truth", f"expected {frames} frames (as the series), found {truth.num_frames}")
@@ -127,6 +143,8 @@ class MotionReport(Node):
             raise InputError("failed", f"expected ({frames}, 1+) flags, found {failed.values.shape}")
         curves = {name: rigid_curves(seq, "series") for name, seq in zip(labels, series)}
         true_curves = rigid_curves(truth, "truth") if truth is not None else None
+        if truth_rigid is not None:
+            true_curves = matrix_curves(truth_rigid.matrices)
         rows = []
         for name, (angles, trans) in curves.items():
             row = [name, float(np.nansum(roughness(angles))), float(np.nansum(roughness(trans)))]

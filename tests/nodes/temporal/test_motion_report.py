@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from nodegraph import ParamSequence, run_node
+from nodegraph import ParamSequence, RigidSequence, run_node
 from nodes.temporal.layout import MATRIX_NAMES, RIGID_NAMES
 from nodes.temporal.report import MotionReport, rigid_curves, roughness
 
@@ -63,3 +63,21 @@ def test_motion_report_tables_errors_against_the_truth(tmp_path):
         run_node(MotionReport, {"folder": str(tmp_path), "labels": ["a", "a"]}, series=[matrix, matrix])
     with pytest.raises(Exception, match="truth"):
         run_node(MotionReport, {"folder": str(tmp_path), "labels": ["truth"]}, series=[matrix], truth=matrix)
+
+
+def test_motion_report_truth_as_rigid_transforms(tmp_path):
+    euler, trans, matrix, _ = _sequences()
+    mats = np.tile(np.eye(4), (len(euler), 1, 1))
+    mats[:, :3, :3] = Rotation.from_euler("xyz", euler, degrees=True).as_matrix()
+    mats[:, :3, 3] = trans
+    noisy = matrix.values.copy()
+    noisy[:, 10] += 0.3  # 0.3 cm off in y
+    series = [ParamSequence(noisy, list(matrix.names))]
+    by_rigid = run_node(MotionReport, {"folder": str(tmp_path / "a")}, series=series, truth_rigid=RigidSequence(mats))
+    by_params = run_node(MotionReport, {"folder": str(tmp_path / "b")}, series=series, truth=matrix)
+    assert by_rigid["table"].rows == by_params["table"].rows
+    assert by_rigid["table"].rows[0][4] == pytest.approx(0.3, abs=1e-4)
+    with pytest.raises(Exception, match="one port"):
+        run_node(MotionReport, {"folder": str(tmp_path)}, series=series, truth=matrix, truth_rigid=RigidSequence(mats))
+    with pytest.raises(Exception, match="truth_rigid.*frames|frames"):
+        run_node(MotionReport, {"folder": str(tmp_path)}, series=series, truth_rigid=RigidSequence(mats[:4]))
