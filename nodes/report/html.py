@@ -62,7 +62,7 @@ def html_page(title: str, sections: list[tuple[str, str]], graph_svg: str = "", 
     link = (f'<p>Per-node timings and cache hits of the run: <a href="{html.escape(run_page)}">'
             f"{html.escape(run_page)}</a></p>") if run_page else ""
     body = "\n".join(f"<section><h2>{html.escape(name)}</h2>\n{content}\n</section>" for name, content in sections)
-    graph = f"<section><h2>Graph</h2>\n{graph_svg}\n</section>" if graph_svg else ""
+    graph = (f'<section><h2>Graph</h2>\n<div class="graph">{graph_svg}</div>\n</section>') if graph_svg else ""
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>
@@ -70,6 +70,7 @@ body {{ font-family: sans-serif; margin: 2em; color: #222; max-width: 1300px; }}
 table {{ border-collapse: collapse; margin: 0.5em 0; }} td, th {{ border: 1px solid #ccc; padding: 3px 8px; }}
 figure {{ display: inline-block; margin: 0.5em; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
 pre {{ background: #f6f6f6; padding: 1em; overflow-x: auto; }}
+.graph {{ overflow-x: auto; border: 1px solid #eee; }}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
 <p>written {html.escape(time.strftime("%Y-%m-%d %H:%M:%S"))}</p>

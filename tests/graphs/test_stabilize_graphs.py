@@ -1,4 +1,4 @@
-"""End to end: graphs/stabilize.json through the `nodegraph` command, graphs/demo.json in-process."""
+"""End to end: graphs/stabilize.json through the `nodegraph` command (the demo: test_demo_graph.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nodegraph import Graph, run
 from nodes.io.face_model import load_face_model
 from nodes.io.mesh import save_mesh_sequence
 from nodes.report.metrics import stabilization_errors
@@ -58,29 +57,3 @@ def test_stabilize_graph_missing_capture_exit_2(tmp_path):
                           cwd=tmp_path)
     assert proc.returncode == 2
     assert "'load'" in proc.stderr and "'path'" in proc.stderr and "missing.npz" in proc.stderr
-
-
-def test_demo_graph_runs_and_mode_pursuit_wins(tmp_path):
-    graph = Graph.load(GRAPHS / "demo.json")
-    params = {"report": str(tmp_path / "demo"), "num_frames": 150, "html": str(tmp_path / "demo" / "index.html")}
-    result = run(graph, parameters=params, scheduler="threads", cache=tmp_path / "cache", chunk=50,
-                 outputs=["report", "html"])
-    assert result.exit_code == 0, result.summary()
-    table = result.outputs["report"]["table"]
-    median = dict(zip(table.column("method"), table.column("median_cm")))
-    assert set(median) == {"three_point", "procrustes", "icp", "mode_pursuit"}
-    assert median["mode_pursuit"] < 0.02
-    assert median["mode_pursuit"] < min(median["three_point"], median["procrustes"], median["icp"])
-    files = {Path(p).name for p in result.outputs["report"]["files"].paths}
-    assert files == {"head_motion.png", "histograms.png", "errors.md", "errors.json"}
-    assert "mode_pursuit" in (tmp_path / "demo" / "errors.md").read_text()
-    page = tmp_path / "demo" / "index.html"
-    assert result.outputs["html"]["files"].paths == [str(page)]
-    from tests.nodes.report.test_html import CHROMIUM, check_in_browser
-
-    if CHROMIUM is not None:  # .ci/run installs Debian's chromium
-        dom = check_in_browser(page, tmp_path)
-        assert "histograms.png" in dom and "mode_pursuit" in dom
-    again = run(Graph.load(GRAPHS / "demo.json"), parameters=params, scheduler="threads", cache=tmp_path / "cache",
-                chunk=50, outputs=["report", "html"])
-    assert again.executed() == 0, again.summary()  # served from the cache
