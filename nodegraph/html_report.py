@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from .graph import Graph
     from .runner import RunResult
 
-__all__ = ["graph_svg", "run_report_html"]
+__all__ = ["graph_svg", "node_rows", "node_table_html", "node_status", "run_report_html"]
 
 _STATUS_COLOURS = {"executed": "#4c78a8", "cached": "#59a14f", "restored": "#8cd17d", "failed": "#e15759",
                    "skipped": "#bab0ac", "idle": "#ffffff"}
@@ -68,15 +68,35 @@ def graph_svg(graph: "Graph", status: dict[str, str] | None = None) -> str:
     return "\n".join(parts)
 
 
-def _node_rows(result: "RunResult") -> list[dict[str, Any]]:
+def node_rows(tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per node, in first-seen order: tasks, executed / cached / restored / failed / skipped counts and
+    seconds, from task records (`RunResult.tasks`, or a node's `run_log`)."""
     rows: dict[str, dict[str, Any]] = {}
-    for task in result.tasks:
+    for task in tasks:
         row = rows.setdefault(task["node"], {"node": task["node"], "tasks": 0, "seconds": 0.0,
                                              **{s: 0 for s in ("executed", "cached", "restored", "failed", "skipped")}})
         row["tasks"] += 1
         row[task["status"]] = row.get(task["status"], 0) + 1
         row["seconds"] += float(task.get("seconds") or 0.0)
     return list(rows.values())
+
+
+def node_table_html(rows: list[dict[str, Any]], types: dict[str, str]) -> str:
+    """The per-node table of `node_rows` (types: node id -> type name)."""
+    table = ["<table><tr><th>node</th><th>type</th><th>tasks</th><th>executed</th><th>cached</th>"
+             "<th>restored</th><th>failed</th><th>skipped</th><th>seconds</th></tr>"]
+    for row in rows:
+        table.append(
+            f"<tr><td>{html.escape(row['node'])}</td><td>{html.escape(types.get(row['node'], ''))}</td>"
+            f"<td>{row['tasks']}</td><td>{row['executed']}</td><td>{row['cached']}</td><td>{row['restored']}</td>"
+            f"<td>{row['failed']}</td><td>{row['skipped']}</td><td>{row['seconds']:.3f}</td></tr>")
+    table.append("</table>")
+    return "".join(table)
+
+
+def node_status(rows: list[dict[str, Any]]) -> dict[str, str]:
+    """Node id -> the status its box is coloured by (failed, skipped, executed, restored, cached)."""
+    return {row["node"]: _summary_status(row) for row in rows}
 
 
 def _summary_status(row: dict[str, Any]) -> str:
@@ -88,16 +108,9 @@ def _summary_status(row: dict[str, Any]) -> str:
 
 def run_report_html(result: "RunResult", graph: "Graph", *, title: str = "nodegraph run") -> str:
     """The HTML page of a finished run (see the module docstring)."""
-    rows = _node_rows(result)
-    status = {row["node"]: _summary_status(row) for row in rows}
-    table = ["<table><tr><th>node</th><th>type</th><th>tasks</th><th>executed</th><th>cached</th>"
-             "<th>restored</th><th>failed</th><th>skipped</th><th>seconds</th></tr>"]
-    for row in rows:
-        table.append(
-            f"<tr><td>{html.escape(row['node'])}</td><td>{html.escape(graph.nodes[row['node']].type)}</td>"
-            f"<td>{row['tasks']}</td><td>{row['executed']}</td><td>{row['cached']}</td><td>{row['restored']}</td>"
-            f"<td>{row['failed']}</td><td>{row['skipped']}</td><td>{row['seconds']:.3f}</td></tr>")
-    table.append("</table>")
+    rows = node_rows(result.tasks)
+    status = node_status(rows)
+    table = [node_table_html(rows, {nid: spec.type for nid, spec in graph.nodes.items()})]
     failures = []
     for failure in result.failures:
         failures.append(

@@ -242,6 +242,7 @@ class Node:
     version: ClassVar[int] = 1
     kind: ClassVar[Kind] = FRAMEWISE
     cacheable: ClassVar[bool] = True
+    uses_run_log: ClassVar[bool] = False
     writes_files: ClassVar[bool] = False
     resources: ClassVar[dict[str, float]] = {}
     preload: ClassVar[tuple[str, ...]] = ()
@@ -293,6 +294,11 @@ class Node:
         self.seed: int = 0
         self._device = "cpu"
         self._progress: Callable[[float, str], None] | None = None
+        self.run_log: list[dict[str, Any]] = []
+        """With `uses_run_log`: one record per task upstream of this one in the current run
+        (name, node, frames, status: executed / cached / restored / ..., seconds), for run
+        reports. Such a node's output depends on the run, not only on its inputs: it should
+        not be `cacheable`."""
 
     @property
     def device(self) -> str:

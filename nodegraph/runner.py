@@ -7,6 +7,7 @@ failed chunk (node id, frames, exception, traceback, input keys) and ends non-ze
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -51,6 +52,7 @@ class TaskSpec:
     writes: bool = False
     restore: bool = False
     device: str = "cpu"
+    run_log: tuple[dict[str, Any], ...] = ()
 
 
 @dataclass
@@ -192,6 +194,7 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
     node = None
     try:
         node = spec.node_cls(spec.params, node_id=spec.node)
+        node.run_log = [dict(record) for record in spec.run_log]
         inputs: dict[str, Any] = {}
         for port, pieces in spec.inputs:
             value = _COMBINED.get(deps, pieces, pieces[0][2] >= 0)
@@ -222,6 +225,12 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
         _STORES.submit(_store_task, spec, values)
     return TaskResult(spec.name, spec.node, spec.out_frames, "executed", values,
                       seconds=time.perf_counter() - start)
+
+
+def compute_logged_task(spec: TaskSpec, count: int, *args: Any) -> TaskResult:
+    """`compute_task` for a node that `uses_run_log`: `args` are its `count` upstream results,
+    then the meta records of every task upstream of it (its `run_log`)."""
+    return compute_task(dataclasses.replace(spec, run_log=tuple(args[count:])), *args[:count])
 
 
 def _store_task(spec: TaskSpec, values: dict[str, PortType]) -> None:
@@ -445,10 +454,25 @@ def _dask_graph(plan: Plan, names: list[str], specs: dict[str, TaskSpec]) -> dic
         task = plan.tasks[name]
         if task.hit:
             dsk[name] = (load_task, specs[name])
+        elif specs[name].node_cls.uses_run_log:
+            upstream = [f"meta|{a}" for a in _ancestors(plan, name) if a in specs]  # those this run has
+            dsk[name] = (compute_logged_task, specs[name], len(task.deps), *task.deps, *upstream)
         else:
             dsk[name] = (compute_task, specs[name], *task.deps)
         dsk[f"meta|{name}"] = (task_meta, name)
     return dsk
+
+
+def _ancestors(plan: Plan, name: str) -> list[str]:
+    """Every task `name` depends on, directly or not, in plan order."""
+    seen: set[str] = set()
+    todo = list(plan.tasks[name].deps)
+    while todo:
+        dep = todo.pop()
+        if dep not in seen:
+            seen.add(dep)
+            todo.extend(plan.tasks[dep].deps)
+    return [t for t in plan.tasks if t in seen]
 
 
 def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], scheduler: Any,

@@ -2,10 +2,15 @@
 
 The page embeds every PNG of the connected `Files` (base64 data URIs), shows their markdown
 files as text and every connected `Table` as an HTML table, one section per connection, and
-draws the graph the results came from (when `graph` names its JSON file). Nothing is loaded
-from the network. Per-node timings and cache hits belong to a run, not to its results (a
-node cannot know the run it is part of): `nodegraph run GRAPH --report-html FILE` writes
-them; `run_page` links that page from this one.
+draws the graph the results came from (when `graph` names its JSON file), each node coloured
+by what it did in this run. Nothing is loaded from the network.
+
+Per-node timings and cache hits: the node `uses_run_log`, so the runner hands it the records
+of every task upstream of it in the current run (executed or served from the cache, seconds),
+and the page tabulates them. Its output depends on the run, so it is not cacheable: it is
+written again by every run (in a fraction of a second; a second run of a graph shows its
+upstream nodes as cached). `nodegraph run GRAPH --report-html FILE` writes the same table for
+every node of any graph, with failures and their error records; `run_page` links that page.
 
 A short inline script marks, after loading, how many images decoded (`data-images` on
 `<body>`: "decoded/total"), so that a headless browser test can check the page.
@@ -57,6 +62,18 @@ def _files_html(paths: list[str]) -> str:
     return "\n".join(parts)
 
 
+def _run_html(run_log: list[dict], types: dict[str, str]) -> str:
+    from nodegraph.html_report import node_rows, node_table_html
+
+    rows = node_rows(run_log)
+    done = sum(r["executed"] for r in rows)
+    cached = sum(r["cached"] + r["restored"] for r in rows)
+    seconds = sum(r["seconds"] for r in rows)
+    return (f"<p>{len(run_log)} tasks upstream of this page: {done} executed, {cached} served from the cache; "
+            f"{seconds:.1f} s of task time (tasks run in parallel: more than the wall time).</p>"
+            + node_table_html(rows, types))
+
+
 def html_page(title: str, sections: list[tuple[str, str]], graph_svg: str = "", run_page: str = "") -> str:
     """The page: a title, the graph (an inline SVG, may be empty), then (heading, HTML) sections."""
     link = (f'<p>Per-node timings and cache hits of the run: <a href="{html.escape(run_page)}">'
@@ -89,6 +106,8 @@ class Html(Node):
     version = 1
     kind = SEQUENCE
     writes_files = True
+    cacheable = False  # it shows the run (uses_run_log): written again by every run
+    uses_run_log = True
 
     class Params(NodeParams):
         path: str = Param("report.html", output_file=True, description="The HTML file to write.")
@@ -123,14 +142,19 @@ class Html(Node):
             name = p.table_titles[i] if i < len(p.table_titles) else f"table {i + 1}"
             sections.append((name, _table_html(table)))
         svg = ""
+        types: dict[str, str] = {}
         if p.graph:
             from nodegraph import Graph
-            from nodegraph.html_report import graph_svg
+            from nodegraph.html_report import graph_svg, node_rows, node_status
 
             try:
-                svg = graph_svg(Graph.load(p.graph))
+                graph = Graph.load(p.graph)
             except Exception as err:  # noqa: BLE001 - named, with the file, below
                 raise InputError("graph", f"expected a readable graph JSON file, '{p.graph}' gave "
                                           f"{type(err).__name__}: {err}") from err
+            types = {nid: spec.type for nid, spec in graph.nodes.items()}
+            svg = graph_svg(graph, node_status(node_rows(self.run_log)) if self.run_log else None)
+        if self.run_log:
+            sections.append(("this run: per-node tasks, cache hits and seconds", _run_html(self.run_log, types)))
         write_text_atomic(p.path, html_page(p.title, sections, svg, p.run_page))
         return {"files": files_value([p.path])}
