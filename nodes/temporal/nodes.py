@@ -16,7 +16,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from nodegraph import Camera, FaceModel, FlowSequence, In, InputError, Node, NodeParams, Out, ParamSequence, Param
+from nodegraph import (Camera, FaceModel, FlowSequence, In, InputError, JsonValue, Node, NodeParams, Out,
+                       ParamSequence, Param)
 from nodegraph import windowed
 
 from .layout import from_unknowns, params_layout, to_unknowns
@@ -85,6 +86,25 @@ class _FlowNode(Node):
         return ParamSequence(from_unknowns(x.cpu().numpy(), params.values, layout), list(params.names))
 
 
+def _render_scene(fm: Any, model: FaceModel, appearance: JsonValue | None, device: str) -> Any:
+    """The RenderScene of the optical render flow: the solve's faces, the appearance's albedo and light."""
+    from ..flow.dense import FlowSettings
+    from ..render.appearance import DEFAULT_LIGHT, default_albedo, parse_appearance
+    from ..render.renderer import sh_from_lights
+    from .opticalfit import RenderScene
+
+    if appearance is None:
+        albedo = default_albedo(model)
+        sh = sh_from_lights(DEFAULT_LIGHT["ambient"], DEFAULT_LIGHT["direction"], DEFAULT_LIGHT["intensity"])
+        background = np.asarray(DEFAULT_LIGHT["background"], np.float32)
+    else:
+        try:
+            albedo, sh, background, _ = parse_appearance(appearance.value, model.neutral.shape[0], len(model.faces))
+        except ValueError as err:
+            raise InputError("appearance", str(err).removeprefix("appearance: ")) from err
+    return RenderScene.build(fm.faces.cpu().numpy(), albedo, sh, background, FlowSettings(), device)
+
+
 class _SolveParams(NodeParams):
     shapes: Shapes = Param("jaw_mouth", description="Expression shapes solved with the pose: none ('rigid'), "
                            "ARKit jaw* and mouth* ('jaw_mouth'), or all.")
@@ -109,6 +129,13 @@ class FlowInfill(_FlowNode):
                                     "occluder, a cut).")
         floor_px2: float = Param(0.25, gt=0, description="Least neighbour mismatch the ratio is taken of, "
                                  "pixels^2 (exact plate flow has none).")
+        render_flow: Literal["geometric", "optical"] = Param(
+            "geometric", description="Render flow matched to the plate flow: the exact screen motion of the "
+            "model's surface (geometric), or flow.OpticalFlow (default settings, as the plates') on renders of "
+            "the fit with `appearance` (optical; far slower; bench/temporal.py compares them).")
+        optical_steps: int = Param(6, ge=1, le=100, description="render_flow 'optical': Levenberg-Marquardt "
+                                   "iterations per frame solve (finite-difference Jacobian, batched renders and "
+                                   "flows).")
 
     fitted = In(ParamSequence, doc="Fitted parameters (r00..r22 + tx ty tz cm as nodes.fit, or rot_x..z "
                     "rad + trans_x..z cm; weights by shape name).")
@@ -116,21 +143,25 @@ class FlowInfill(_FlowNode):
     plate_flow = In(FlowSequence, doc="Optical flow of the plates, frame f -> f + 1 (flow.OpticalFlow).")
     model = In(FaceModel, doc="The face model fitted.")
     camera = In(Camera, doc="The plates' camera.")
+    appearance = In(JsonValue, optional=True, doc="render_flow 'optical': albedo and lighting of the renders "
+                                                  "(fit.EstimateAppearance); the default appearance if absent.")
     infilled = Out(ParamSequence, doc="Parameters with the solved runs filled in.")
     still_failed = Out(ParamSequence, doc="(F, 1) 1 where frames stayed unsolved.")
 
     def run(self, fitted: ParamSequence, failed: ParamSequence, plate_flow: FlowSequence, model: FaceModel,
-            camera: Camera) -> dict[str, ParamSequence]:
+            camera: Camera, appearance: JsonValue | None = None) -> dict[str, ParamSequence]:
         from .sweeps import infill
 
         p = self.params
         fm, x, flows, layout, have = self._setup(fitted, model, camera, plate_flow, p.shapes, p.stride)
+        scene = _render_scene(fm, model, appearance, self.device) if p.render_flow == "optical" else None
         mask = _failed_mask(failed, len(x))
         at_start = self.frames.start == self.full_frames.start if len(self.full_frames) else True
         at_end = self.frames.stop == self.full_frames.stop if len(self.full_frames) else True
         x, still, _ = infill(fm, x, flows, plate_flow.valid, mask, max_gap=p.max_gap, sweeps=p.sweeps,
                              iterations=p.iterations, at_start=at_start, at_end=at_end,
-                             reject_ratio=p.reject_ratio, floor_px2=p.floor_px2, progress=self.progress)
+                             reject_ratio=p.reject_ratio, floor_px2=p.floor_px2, optical=scene,
+                             optical_steps=p.optical_steps, progress=self.progress)
         return {"infilled": self._pack(fitted, x, layout, have),
                 "still_failed": ParamSequence(still.astype(np.float32)[:, None], ["failed"])}
 

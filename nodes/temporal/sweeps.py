@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from .flowfit import FlowModel, Terms, frame_energies, solve_frames
+from .opticalfit import RenderScene, optical_energies, solve_frame_optical
 
 __all__ = ["failed_runs", "infill", "smooth"]
 
@@ -80,9 +81,34 @@ class _Problem:
         return float(frame_energies(self.model, x[i:i + 1], terms)[0]) / pairs
 
 
+class _OpticalProblem(_Problem):
+    """`_Problem` with the optical render flow (`nodes.temporal.opticalfit`)."""
+
+    def __init__(self, scene: RenderScene, steps: int, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.scene, self.steps = scene, steps
+
+    def solve(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True,
+              start: Tensor | None = None) -> Tensor:
+        terms = self._terms(i, x, use_prev, use_next)
+        if terms is None:
+            return x[i]
+        x0 = (x[i] if start is None else start)[None]
+        return solve_frame_optical(self.scene, self.model, x0, terms, iterations=self.steps)[0]
+
+    def mismatch(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True) -> float:
+        terms = self._terms(i, x, use_prev, use_next)
+        if terms is None:
+            return float("nan")
+        with torch.no_grad():
+            energy = float(optical_energies(self.scene, self.model, x[i:i + 1], terms)[0])
+        return energy / (int(terms.prev_on[0]) + int(terms.next_on[0]))
+
+
 def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, failed: np.ndarray, *,
            max_gap: int, sweeps: int = 1, iterations: int = 8, at_start: bool = True, at_end: bool = True,
-           reject_ratio: float = 6.0, floor_px2: float = 0.25,
+           reject_ratio: float = 6.0, floor_px2: float = 0.25, optical: RenderScene | None = None,
+           optical_steps: int = 6,
            progress: Callable[[float, str], None] | None = None) -> tuple[Tensor, np.ndarray, np.ndarray]:
     """Solve the failed frames from their neighbours by plate flow (module docstring).
 
@@ -102,6 +128,8 @@ def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, f
         iterations: LM iterations per frame solve.
         at_start, at_end: frame 0 / F - 1 is the shot's first / last frame (not a chunk edge).
         reject_ratio, floor_px2: the acceptance test above.
+        optical: None for the geometric render flow; a RenderScene for the optical one
+            (`nodes.temporal.opticalfit`, `optical_steps` LM iterations per frame solve).
         progress: called with (fraction, message).
     Returns:
         (F, 6 + K) parameters, (F,) bool frames still failed and (F,) the mismatch of each
@@ -119,7 +147,8 @@ def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, f
         todo.append((a, b))
     for n, (a, b) in enumerate(todo):
         usable = ~failed
-        prob = _Problem(model, x, flows, pair_valid, usable, iterations)
+        prob = _Problem(model, x, flows, pair_valid, usable, iterations) if optical is None else \
+            _OpticalProblem(optical, optical_steps, model, x, flows, pair_valid, usable, iterations)
         forward_first = a > 0
         for sweep in range(sweeps):
             order = [("fwd", range(a, b + 1)), ("bwd", range(b, a - 1, -1))]

@@ -149,3 +149,30 @@ def test_flow_infill_leaves_frames_without_a_face_failed():
                    failed=ParamSequence(failed[:, None].astype(np.float32), ["failed"]), plate_flow=clean,
                    model=scene.model, camera=scene.camera)
     assert out["still_failed"].values.sum() == 0
+
+
+def test_flow_infill_with_the_optical_render_flow_beats_interpolation():
+    """render_flow 'optical': the same optical flow on renders of the fit (textured appearance), LM
+    with finite differences. 3 failed frames of a fast head turn during mouth motion at 48 px, pose
+    only: the rotation is 2x closer to the truth than interpolation (measured 0.0054 vs 0.0108 rad
+    mean; bench/temporal.py compares it with the geometric render flow)."""
+    from nodegraph import JsonValue
+    from nodes.render.appearance import appearance_json
+
+    scene = make_scene(48)
+    names = scene.model.expression_names
+    truth = head_motion(7, names, seed=2, mouth_frames=(1, 6), amplitude=2.0)
+    flow = run_node(OpticalFlow, images=render_plates(scene, truth))["flow"]
+    failed = np.zeros(7, bool)
+    failed[2:5] = True
+    app = JsonValue(appearance_json(scene.albedo, scene.sh, tuple(scene.background), None))
+    out = run_node(FlowInfill, {"render_flow": "optical", "optical_steps": 5, "shapes": "rigid"},
+                   fitted=_seq(np.where(failed[:, None], 0.0, truth), names),
+                   failed=ParamSequence(failed[:, None].astype(np.float32), ["failed"]),
+                   plate_flow=flow, model=scene.model, camera=scene.camera, appearance=app)
+    got = out["infilled"].values[2:5, :3]
+    t = np.linspace(0, 1, 5)[1:-1, None]
+    interp = ((1 - t) * truth[1] + t * truth[5])[:, :3]
+    err, err_interp = np.abs(got - truth[2:5, :3]).mean(), np.abs(interp - truth[2:5, :3]).mean()
+    assert out["still_failed"].values.sum() == 0
+    assert err < 0.75 * err_interp, (err, err_interp)
