@@ -68,5 +68,5 @@ def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray,
     if len(rotation):
         quats = quat_from_axis_angle(v[:, rotation])[idx]  # (F, 3, 4)
         out[:, rotation] = axis_angle_from_quat(quaternion_mean(quats, w))
-    out[~ok] = v[~ok]
+    out[~ok] = np.asarray(values, np.float64)[~ok]  # as given, NaN included
     return out

@@ -162,8 +162,9 @@ class FlowInfill(_FlowNode):
                              iterations=p.iterations, at_start=at_start, at_end=at_end,
                              reject_ratio=p.reject_ratio, floor_px2=p.floor_px2, optical=scene,
                              optical_steps=p.optical_steps, progress=self.progress)
-        return {"infilled": self._pack(fitted, x, layout, have),
-                "still_failed": ParamSequence(still.astype(np.float32)[:, None], ["failed"])}
+        infilled = self._pack(fitted, x, layout, have)
+        infilled.values[still] = fitted.values[still]  # unsolved or rejected: the fit's values (NaN if none)
+        return {"infilled": infilled, "still_failed": ParamSequence(still.astype(np.float32)[:, None], ["failed"])}
 
 
 class _SmoothParams(_SolveParams):
@@ -209,7 +210,9 @@ class _Smooth(_FlowNode):
         x = smooth(fm, x, flows, plate_flow.valid, ~mask, sweeps=p.sweeps, scheme=p.scheme,
                    parity=self.frames.start % 2, iterations=p.iterations, plate_weight=self._plate,
                    self_weight=self._self, prior_weight=p.prior_weight, prior=prior, progress=self.progress)
-        return {"smoothed": self._pack(fitted, x, layout, have)}
+        smoothed = self._pack(fitted, x, layout, have)
+        smoothed.values[mask] = fitted.values[mask]  # left alone: exactly as given (NaN stays NaN)
+        return {"smoothed": smoothed}
 
 
 class PlateFlow(_Smooth):
@@ -276,4 +279,6 @@ class Average(Node):
         avg = average_params(fitted.values, np.zeros(0, np.int64), others, centre_weight=self.params.centre_weight,
                              failed=_failed_mask(failed, fitted.num_frames))
         out[:, others] = avg[:, others]
+        mask = _failed_mask(failed, fitted.num_frames)
+        out[mask] = fitted.values[mask]  # left alone: exactly as given (NaN stays NaN)
         return {"averaged": ParamSequence(out.astype(np.float32), list(fitted.names))}

@@ -139,13 +139,20 @@ def test_flow_infill_leaves_frames_without_a_face_failed():
         failed = np.zeros(9, bool)
         failed[run] = True
         fitted = truth.copy()
-        fitted[failed] = 0.0
-        out = run_node(FlowInfill, {"iterations": 6, "stride": 2}, fitted=_seq(fitted, names),
-                       failed=ParamSequence(failed[:, None].astype(np.float32), ["failed"]), plate_flow=flow,
-                       model=scene.model, camera=scene.camera)
+        fitted[failed] = np.nan  # what the fit gives where it found no face
+        flags = ParamSequence(failed[:, None].astype(np.float32), ["failed"])
+        out = run_node(FlowInfill, {"iterations": 6, "stride": 2}, fitted=_seq(fitted, names), failed=flags,
+                       plate_flow=flow, model=scene.model, camera=scene.camera)
         np.testing.assert_array_equal(out["still_failed"].values[:, 0] > 0.5, failed)
+        assert np.isnan(out["infilled"].values[failed]).all()  # the fit's values, not the rejected solve's
+        averaged = run_node(Average, fitted=out["infilled"], failed=out["still_failed"])["averaged"].values
+        assert np.isnan(averaged[failed]).all() and np.isfinite(averaged[~failed]).all()
+    smoothed = run_node(Hybrid, {"sweeps": 1, "iterations": 2, "stride": 2}, fitted=out["infilled"],
+                        failed=out["still_failed"], plate_flow=flow, model=scene.model,
+                        camera=scene.camera)["smoothed"].values
+    assert np.isnan(smoothed[failed]).all() and np.isfinite(smoothed[~failed]).all()
     clean = run_node(OpticalFlow, images=plates)["flow"]  # the same run on the real plates is solved
-    out = run_node(FlowInfill, {"iterations": 6, "stride": 2}, fitted=_seq(np.where(failed[:, None], 0.0, truth), names),
+    out = run_node(FlowInfill, {"iterations": 6, "stride": 2}, fitted=_seq(np.where(failed[:, None], np.nan, truth), names),
                    failed=ParamSequence(failed[:, None].astype(np.float32), ["failed"]), plate_flow=clean,
                    model=scene.model, camera=scene.camera)
     assert out["still_failed"].values.sum() == 0
