@@ -27,7 +27,8 @@ from _timing import median_ms
 
 
 def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
-    from nodes.flow.dense import dense_flow, endpoint_error
+    from nodes.flow.dense import FlowSettings, dense_flow, endpoint_error
+    from nodes.flow.fast import dense_flow_numpy
     from nodes.flow.geometric import render_flow
     from nodes.temporal.synthetic import head_motion, make_scene, render_plates, scene_vertices
 
@@ -51,7 +52,14 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
             flow = dense_flow(img[:1], img[1:])
             ms = median_ms(lambda: dense_flow(img[:1], img[1:]))
         tag = f", motion x{amplitude:.0f}"
-        results.setdefault("ours (robust Horn-Schunck)" + tag, []).append((endpoint_error(flow, truth, mask).item(), ms))
+        results.setdefault("ours, torch (differentiable)" + tag, []).append((endpoint_error(flow, truth, mask).item(), ms))
+        for name, settings in (("ours, compiled (flow.OpticalFlow)", FlowSettings()),
+                               ("ours, compiled, skip_levels=1", FlowSettings(skip_levels=1)),
+                               ("ours, compiled, fast (skip 1, 7 warps, median/warp, alpha .07)",
+                                FlowSettings(skip_levels=1, warps=7, median_every_warp=True, alpha=0.07))):
+            fast = torch.as_tensor(dense_flow_numpy(img[:1], img[1:], settings))[None]
+            ms = median_ms(lambda: dense_flow_numpy(img[:1], img[1:], settings))
+            results.setdefault(name + tag, []).append((endpoint_error(fast, truth, mask).item(), ms))
         results.setdefault("|true motion|" + tag, []).append((truth.norm(dim=1)[mask].mean().item(), 0.0))
         if cv2 is None:
             continue
@@ -158,9 +166,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} threads; flow on {args.pairs} face-render pairs at "
           f"{args.size}^2")
-    print(f"{'flow':42s} {'EPE px':>8s} {'ms/pair':>8s}")
+    print(f"{'flow':66s} {'EPE px':>8s} {'ms/pair':>8s}")
     for name, epe, ms in flow_rows(args.size, args.pairs):
-        print(f"{name:42s} {epe:8.3f} {ms:8.1f}")
+        print(f"{name:66s} {epe:8.3f} {ms:8.1f}")
     infill, smooth = temporal_rows(args.frames)
     print(f"\n{'infill of 5 failed frames':48s} {'rot rad':>8s} {'trans cm':>8s} {'jawOpen':>8s} {'s':>6s}")
     for name, r, t, j, s in infill:

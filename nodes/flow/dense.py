@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["FlowSettings", "dense_flow", "warp_image", "luminance", "endpoint_error"]
+__all__ = ["FlowSettings", "dense_flow", "upsample_flow", "warp_image", "luminance", "endpoint_error"]
 
 
 class FlowSettings(NamedTuple):
@@ -51,6 +51,8 @@ class FlowSettings(NamedTuple):
         eps: Charbonnier epsilon of the data term, normalized intensity.
         median: 3x3 median filter of the flow after each level (or warp).
         median_every_warp: filter after every warp rather than once per level.
+        skip_levels: finest pyramid levels not solved: the flow of the finest solved level is
+            upsampled (bilinear) to the full size (1: a quarter of the work, coarser flow).
     """
 
     alpha: float = 0.06
@@ -62,6 +64,7 @@ class FlowSettings(NamedTuple):
     eps: float = 0.01
     median: bool = True
     median_every_warp: bool = False
+    skip_levels: int = 0
 
 
 def luminance(images: Tensor) -> Tensor:
@@ -188,7 +191,8 @@ def dense_flow(image1: Tensor, image2: Tensor, settings: FlowSettings = FlowSett
     levels = len(pyr1)
     b = image1.shape[0]
     flow = None
-    for level in range(levels - 1, -1, -1):
+    last = min(max(s.skip_levels, 0), levels - 1)
+    for level in range(levels - 1, last - 1, -1):
         a1, a2 = pyr1[level], pyr2[level]
         h, w = a1.shape[-2:]
         if flow is None:
@@ -198,9 +202,7 @@ def dense_flow(image1: Tensor, image2: Tensor, settings: FlowSettings = FlowSett
                 f = 2.0 ** -level
                 flow = F.interpolate(init, size=(h, w), mode="bilinear", align_corners=False) * f
         else:
-            sy, sx = h / flow.shape[2], w / flow.shape[3]
-            flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
-            flow = flow * torch.tensor([sx, sy], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
+            flow = upsample_flow(flow, (h, w))
         iters = _iterations_at(level, levels, s)
         for _ in range(s.warps):
             warped, inside = warp_image(a2, flow)
@@ -219,7 +221,17 @@ def dense_flow(image1: Tensor, image2: Tensor, settings: FlowSettings = FlowSett
                 flow = _median3(flow)
         if s.median and not s.median_every_warp:
             flow = _median3(flow)
-    return flow
+    return upsample_flow(flow, image1.shape[-2:])
+
+
+def upsample_flow(flow: Tensor, size: tuple[int, int]) -> Tensor:
+    """(B, 2, h, w) flow -> (B, 2, H, W): bilinear, vectors scaled by the size ratio."""
+    h, w = int(size[0]), int(size[1])
+    if flow.shape[-2:] == (h, w):
+        return flow
+    sy, sx = h / flow.shape[2], w / flow.shape[3]
+    flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
+    return flow * torch.tensor([sx, sy], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
 
 
 def endpoint_error(flow: Tensor, truth: Tensor, mask: Tensor | None = None) -> Tensor:

@@ -69,8 +69,19 @@ class RenderScene:
         return out.image.permute(0, 3, 1, 2), out.alpha
 
 
+def _flows(first: Tensor, second: Tensor, settings: FlowSettings) -> Tensor:
+    """dense_flow of N pairs without gradients: compiled on the CPU (as flow.OpticalFlow's plates)."""
+    if first.device.type != "cpu":
+        return dense_flow(first, second, settings)
+    from ..flow.fast import dense_flow_numpy
+
+    return torch.stack([torch.as_tensor(dense_flow_numpy(first[i:i + 1], second[i:i + 1], settings))
+                        for i in range(first.shape[0])])
+
+
 def _term(scene: RenderScene, first: Tensor, second: Tensor, alpha: Tensor, plate: Tensor) -> Tensor:
-    flow = dense_flow(first, second, scene.settings)[0].permute(1, 2, 0).double()  # (H, W, 2)
+    flow = (dense_flow(first, second, scene.settings) if torch.is_grad_enabled() else
+            _flows(first, second, scene.settings))[0].permute(1, 2, 0).double()  # (H, W, 2)
     mask = (alpha[0] > 0.5).to(flow.dtype)
     return (((plate - flow) ** 2).sum(-1) * mask).sum() / mask.sum().clamp_min(1.0)
 
@@ -114,7 +125,7 @@ def _residuals(scene: RenderScene, model: FlowModel, xs: Tensor, terms: Terms, r
             (terms.next_on, img, next_img.expand(n, -1, -1, -1), self_mask, terms.next_flow[0])):
         if not bool(on[0]):
             continue
-        flow = dense_flow(first, second, scene.settings).permute(0, 2, 3, 1).double()  # (N, H, W, 2)
+        flow = _flows(first, second, scene.settings).permute(0, 2, 3, 1).double()  # (N, H, W, 2)
         weight = (terms.plate_weight / mask.sum().clamp_min(1)) ** 0.5
         parts.append(((plate[None] - flow)[:, mask] * weight).reshape(n, -1))
     return torch.cat(parts, 1)

@@ -1,0 +1,57 @@
+"""nodes.flow.fast: the compiled forward pass gives the torch flow (same model and counts) on face
+renders and a translated texture, with and without skipped levels and per-warp medians; the node
+uses it on the CPU."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("numba")
+
+from nodegraph import ImageSequence, run_node  # noqa: E402
+from nodes.flow import OpticalFlow  # noqa: E402
+from nodes.flow.dense import FlowSettings, dense_flow  # noqa: E402
+from nodes.flow.fast import dense_flow_numpy  # noqa: E402
+from nodes.temporal.synthetic import head_motion, make_scene, render_plates  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def pair():
+    scene = make_scene(80)
+    values = head_motion(2, scene.model.expression_names, seed=3, amplitude=2.0, mouth_frames=(0, 2))
+    return torch.as_tensor(render_plates(scene, values).pixels).permute(0, 3, 1, 2)
+
+
+@pytest.mark.parametrize("settings", [FlowSettings(), FlowSettings(skip_levels=1),
+                                      FlowSettings(warps=3, median_every_warp=True, levels=3)])
+def test_compiled_flow_equals_the_torch_flow(pair, settings):
+    with torch.no_grad():
+        ref = dense_flow(pair[:1], pair[1:], settings)[0].numpy()
+    fast = dense_flow_numpy(pair[:1], pair[1:], settings)
+    assert fast.shape == ref.shape == (2, 80, 80)
+    assert np.abs(ref).max() > 0.5  # a real motion
+    diff = np.abs(fast - ref)  # float32 sums in another order (fastmath), over 8 warps x 5 levels
+    assert diff.mean() < 2e-4 and diff.max() < 2e-2, (diff.mean(), diff.max())
+
+
+def test_compiled_flow_on_odd_sizes_and_grey_images():
+    rng = np.random.default_rng(0)
+    base = rng.uniform(size=(1, 1, 45, 61)).astype(np.float32)
+    shifted = np.roll(base, 1, axis=3)
+    a, b = torch.as_tensor(base), torch.as_tensor(shifted)
+    with torch.no_grad():
+        ref = dense_flow(a, b)[0].numpy()
+    diff = np.abs(dense_flow_numpy(a, b) - ref)
+    assert diff.mean() < 2e-4 and diff.max() < 2e-2, (diff.mean(), diff.max())
+    with pytest.raises(ValueError, match="one shape"):
+        dense_flow_numpy(a, b[..., :60])
+
+
+def test_node_on_the_cpu_uses_the_compiled_flow(pair):
+    images = ImageSequence(pair.permute(0, 2, 3, 1).numpy(), colour_space="linear")
+    out = run_node(OpticalFlow, {"skip_levels": 1}, images=images)["flow"]
+    want = dense_flow_numpy(pair[:1], pair[1:], FlowSettings(skip_levels=1)).transpose(1, 2, 0)
+    np.testing.assert_allclose(out.flow[0], want, atol=1e-6)
+    assert out.valid.tolist() == [True, False]
