@@ -84,13 +84,10 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
 
 
 def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    from ..render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, hidden_faces, parse_appearance
+    from ..render.appearance import model_appearance
 
-    if appearance is None:
-        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32),
-                hidden_faces(model.faces))
     try:
-        return parse_appearance(appearance.value, model.neutral.shape[0], len(model.faces))
+        return model_appearance(model, None if appearance is None else appearance.value)
     except ValueError as err:
         raise InputError("appearance", str(err).removeprefix("appearance: ")) from err
 

@@ -61,12 +61,6 @@ def triangulate_polygons(polygons: np.ndarray) -> np.ndarray:
     return pairs[keep].astype(np.int32)
 
 
-def _remap(old_to_new: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """Map old vertex indices to new ones, dropping those not kept (order preserved)."""
-    mapped = old_to_new[indices]
-    return mapped[mapped >= 0].astype(np.int32)
-
-
 def restrict_face_model(model: FaceModel, keep: np.ndarray, *, keep_faces: bool = True) -> FaceModel:
     """Return the model restricted to vertices `keep` (in their original order).
 
@@ -80,7 +74,7 @@ def restrict_face_model(model: FaceModel, keep: np.ndarray, *, keep_faces: bool 
     Returns:
         A new FaceModel with N vertices; vertex i is the old vertex keep[i].
     """
-    from ..mesh.regions import restrict_faces
+    from ..mesh.regions import remap_indices, restrict_faces
 
     keep = np.asarray(keep, dtype=np.int64)
     faces, inside, old_to_new = restrict_faces(model.faces, keep, model.neutral.shape[0])
@@ -89,7 +83,7 @@ def restrict_face_model(model: FaceModel, keep: np.ndarray, *, keep_faces: bool 
         faces = np.zeros((0, 3), np.int32)
     elif model.uv is not None and model.uv_faces is not None:
         uv, uv_faces = model.uv, model.uv_faces[inside]
-    groups = {name: _remap(old_to_new, idx) for name, idx in model.groups.items()}
+    groups = {name: remap_indices(old_to_new, idx) for name, idx in model.groups.items()}
     return FaceModel(
         neutral=np.ascontiguousarray(model.neutral[keep]),
         faces=faces,
@@ -97,7 +91,7 @@ def restrict_face_model(model: FaceModel, keep: np.ndarray, *, keep_faces: bool 
         expression_names=list(model.expression_names),
         identity_deltas=np.ascontiguousarray(model.identity_deltas[:, keep]),
         groups=groups,
-        landmarks=_remap(old_to_new, model.landmarks),
+        landmarks=remap_indices(old_to_new, model.landmarks),
         uv=uv,
         uv_faces=uv_faces,
     )

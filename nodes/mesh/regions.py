@@ -15,7 +15,7 @@ import numpy as np
 
 from nodegraph import FRAMEWISE, In, InputError, MeshSequence, Node, NodeParams, Out, Param
 
-__all__ = ["region_vertices", "restrict_faces", "SelectRegion", "ReplaceRegion"]
+__all__ = ["region_vertices", "restrict_faces", "remap_indices", "SelectRegion", "ReplaceRegion"]
 
 
 def region_vertices(mesh: MeshSequence, group: str, port: str = "mesh") -> np.ndarray:
@@ -52,6 +52,13 @@ def restrict_faces(faces: np.ndarray, keep: np.ndarray, num_vertices: int) -> tu
     return old_to_new[faces[inside]].astype(np.int32), inside, old_to_new
 
 
+def remap_indices(old_to_new: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Map old vertex indices to new ones (`restrict_faces`' old_to_new), dropping those not kept
+    (order preserved); int32."""
+    mapped = old_to_new[indices]
+    return mapped[mapped >= 0].astype(np.int32)
+
+
 def select_region(mesh: MeshSequence, keep: np.ndarray) -> MeshSequence:
     """The sub-mesh of vertices `keep`: faces, uv and groups restricted and re-indexed."""
     faces, inside, old_to_new = restrict_faces(mesh.faces, keep, mesh.num_vertices)
@@ -60,10 +67,7 @@ def select_region(mesh: MeshSequence, keep: np.ndarray) -> MeshSequence:
         uv = uv[keep]
     elif uv_faces is not None:
         uv_faces = uv_faces[inside]
-    groups = {}
-    for name, idx in mesh.groups.items():
-        mapped = old_to_new[np.asarray(idx, np.int64)]
-        groups[name] = mapped[mapped >= 0].astype(np.int32)
+    groups = {name: remap_indices(old_to_new, np.asarray(idx, np.int64)) for name, idx in mesh.groups.items()}
     return dataclasses.replace(mesh, vertices=np.ascontiguousarray(mesh.vertices[:, keep]), faces=faces, uv=uv,
                                uv_faces=uv_faces, groups=groups)
 

@@ -160,6 +160,19 @@ def default_sh() -> np.ndarray:
     return sh_from_lights(DEFAULT_LIGHT["ambient"], DEFAULT_LIGHT["direction"], DEFAULT_LIGHT["intensity"])
 
 
+def model_appearance(model: FaceModel, value: Any | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """albedo, sh, background, hidden faces of an appearance JSON value (`parse_appearance`), or of
+    the default appearance when `value` is None (ICT eye shells and lashes hidden).
+
+    Raises:
+        ValueError: as `parse_appearance`.
+    """
+    if value is None:
+        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32),
+                hidden_faces(model.faces))
+    return parse_appearance(value, model.neutral.shape[0], len(model.faces))
+
+
 def appearance_json(albedo: np.ndarray, sh: np.ndarray, background: tuple[float, float, float],
                     hidden: np.ndarray | None = None) -> dict[str, Any]:
     """The JSON value of an appearance (the `render.Render` node's `appearance` port).

@@ -89,19 +89,13 @@ class _FlowNode(Node):
 def _render_scene(fm: Any, model: FaceModel, appearance: JsonValue | None, device: str) -> Any:
     """The RenderScene of the optical render flow: the solve's faces, the appearance's albedo and light."""
     from ..flow.dense import FlowSettings
-    from ..render.appearance import DEFAULT_LIGHT, default_albedo, parse_appearance
-    from ..render.renderer import sh_from_lights
+    from ..render.appearance import model_appearance
     from .opticalfit import RenderScene
 
-    if appearance is None:
-        albedo = default_albedo(model)
-        sh = sh_from_lights(DEFAULT_LIGHT["ambient"], DEFAULT_LIGHT["direction"], DEFAULT_LIGHT["intensity"])
-        background = np.asarray(DEFAULT_LIGHT["background"], np.float32)
-    else:
-        try:
-            albedo, sh, background, _ = parse_appearance(appearance.value, model.neutral.shape[0], len(model.faces))
-        except ValueError as err:
-            raise InputError("appearance", str(err).removeprefix("appearance: ")) from err
+    try:
+        albedo, sh, background, _ = model_appearance(model, None if appearance is None else appearance.value)
+    except ValueError as err:
+        raise InputError("appearance", str(err).removeprefix("appearance: ")) from err
     return RenderScene.build(fm.faces.cpu().numpy(), albedo, sh, background, FlowSettings(), device)
 
 

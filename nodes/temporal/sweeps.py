@@ -64,21 +64,27 @@ class _Problem:
                      flat[ip:ip + 1], flat[i:i + 1], self.plate_weight, self.self_weight,
                      None if self.prior is None else self.prior[i:i + 1], self.prior_weight)
 
+    def _solve(self, x0: Tensor, terms: Terms) -> Tensor:
+        """(1, 6 + K) start -> (1, 6 + K) solved parameters of one frame."""
+        return solve_frames(self.model, x0, terms, iterations=self.iterations)
+
+    def _energy(self, x: Tensor, terms: Terms) -> float:
+        """E_i of one frame at (1, 6 + K) parameters."""
+        return float(frame_energies(self.model, x, terms)[0])
+
     def solve(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True,
               start: Tensor | None = None) -> Tensor:
         terms = self._terms(i, x, use_prev, use_next)
         if terms is None:
             return x[i]
-        x0 = (x[i] if start is None else start)[None]
-        return solve_frames(self.model, x0, terms, iterations=self.iterations)[0]
+        return self._solve((x[i] if start is None else start)[None], terms)[0]
 
     def mismatch(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True) -> float:
         """Mean squared plate-flow mismatch of frame i per flow pair it has (pixels^2); NaN if none."""
         terms = self._terms(i, x, use_prev, use_next)
         if terms is None:
             return float("nan")
-        pairs = int(terms.prev_on[0]) + int(terms.next_on[0])
-        return float(frame_energies(self.model, x[i:i + 1], terms)[0]) / pairs
+        return self._energy(x[i:i + 1], terms) / (int(terms.prev_on[0]) + int(terms.next_on[0]))
 
 
 class _OpticalProblem(_Problem):
@@ -88,21 +94,12 @@ class _OpticalProblem(_Problem):
         super().__init__(*args, **kwargs)
         self.scene, self.steps = scene, steps
 
-    def solve(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True,
-              start: Tensor | None = None) -> Tensor:
-        terms = self._terms(i, x, use_prev, use_next)
-        if terms is None:
-            return x[i]
-        x0 = (x[i] if start is None else start)[None]
-        return solve_frame_optical(self.scene, self.model, x0, terms, iterations=self.steps)[0]
+    def _solve(self, x0: Tensor, terms: Terms) -> Tensor:
+        return solve_frame_optical(self.scene, self.model, x0, terms, iterations=self.steps)
 
-    def mismatch(self, i: int, x: Tensor, *, use_prev: bool = True, use_next: bool = True) -> float:
-        terms = self._terms(i, x, use_prev, use_next)
-        if terms is None:
-            return float("nan")
+    def _energy(self, x: Tensor, terms: Terms) -> float:
         with torch.no_grad():
-            energy = float(optical_energies(self.scene, self.model, x[i:i + 1], terms)[0])
-        return energy / (int(terms.prev_on[0]) + int(terms.next_on[0]))
+            return float(optical_energies(self.scene, self.model, x, terms)[0])
 
 
 def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, failed: np.ndarray, *,
