@@ -79,30 +79,12 @@ def _flows(first: Tensor, second: Tensor, settings: FlowSettings) -> Tensor:
                         for i in range(first.shape[0])])
 
 
-def _term(scene: RenderScene, first: Tensor, second: Tensor, alpha: Tensor, plate: Tensor) -> Tensor:
-    flow = (dense_flow(first, second, scene.settings) if torch.is_grad_enabled() else
-            _flows(first, second, scene.settings))[0].permute(1, 2, 0).double()  # (H, W, 2)
-    mask = (alpha[0] > 0.5).to(flow.dtype)
-    return (((plate - flow) ** 2).sum(-1) * mask).sum() / mask.sum().clamp_min(1.0)
-
-
-def optical_energies(scene: RenderScene, model: FlowModel, x: Tensor, terms: Terms,
-                     rendered: tuple | None = None) -> Tensor:
-    """E_i (module docstring) of one frame at parameters x (1, 6 + K), pixels^2; differentiable in x.
-
-    `rendered`: the neighbours' renders ((image, alpha) of frame i - 1, image of frame i + 1), or
-    None to render them here.
-    """
-    if rendered is None:
-        rendered = neighbour_renders(scene, model, terms)
-    (prev_img, prev_alpha), next_img = rendered
-    img, alpha = scene.render(model, x)
-    energy = x.new_zeros(())
-    if bool(terms.prev_on[0]):
-        energy = energy + terms.plate_weight * _term(scene, prev_img, img, prev_alpha, terms.prev_flow[0])
-    if bool(terms.next_on[0]):
-        energy = energy + terms.plate_weight * _term(scene, img, next_img, alpha, terms.next_flow[0])
-    return energy[None]
+def optical_energies(scene: RenderScene, model: FlowModel, x: Tensor, terms: Terms) -> Tensor:
+    """E_i (module docstring) of one frame at parameters x (1, 6 + K), pixels^2 (no gradient)."""
+    with torch.no_grad():
+        self_mask = scene.render(model, x)[1][0] > 0.5
+        r = _residuals(scene, model, x, terms, neighbour_renders(scene, model, terms), self_mask)
+    return (r * r).sum(1)
 
 
 def neighbour_renders(scene: RenderScene, model: FlowModel, terms: Terms) -> tuple:

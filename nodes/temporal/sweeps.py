@@ -98,8 +98,7 @@ class _OpticalProblem(_Problem):
         return solve_frame_optical(self.scene, self.model, x0, terms, iterations=self.steps)
 
     def _energy(self, x: Tensor, terms: Terms) -> float:
-        with torch.no_grad():
-            return float(optical_energies(self.scene, self.model, x, terms)[0])
+        return float(optical_energies(self.scene, self.model, x, terms)[0])
 
 
 def infill(model: FlowModel, x: Tensor, flows: Tensor, pair_valid: np.ndarray, failed: np.ndarray, *,
