@@ -4,9 +4,10 @@ Run: nice python bench/temporal.py [--size 256] [--pairs 4] [--threads 2] [--fra
 
 1. Flow on pairs of renders of the bundled head under known motion (two amplitudes) (`nodes.temporal.synthetic`,
    textured skin, grey background; the truth is the geometric render flow): mean end-point
-   error over the face (px) and ms per pair, ours (`nodes.flow.dense.dense_flow`, the
-   `flow.OpticalFlow` defaults) against OpenCV DIS (medium and fast presets, on 8-bit sRGB
-   luminance, when `cv2` is installed).
+   error over the face (px) and ms per pair, ours (the differentiable torch `dense_flow` and
+   its compiled forward pass `dense_flow_numpy`, which `flow.OpticalFlow` runs on the CPU)
+   against OpenCV DIS (medium and fast presets, on 8-bit sRGB luminance, when `cv2` is
+   installed); the defaults of both also on one thread.
 2. Infill: a shot with 5 consecutive frames marked failed during a fast jaw opening; mean
    absolute error of rotation (rad), translation (cm) and jawOpen over the run, for linear
    interpolation of the neighbours and `temporal.FlowInfill` with geometric and optical plate
@@ -19,11 +20,30 @@ Run: nice python bench/temporal.py [--size 256] [--pairs 4] [--threads 2] [--fra
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import torch
 from _timing import median_ms
+
+
+@contextlib.contextmanager
+def one_thread(cv2) -> Iterator[None]:
+    """numba's and OpenCV's thread counts set to 1 inside the block."""
+    import numba
+
+    threads, cv_threads = numba.get_num_threads(), (cv2.getNumThreads() if cv2 is not None else 0)
+    numba.set_num_threads(1)
+    if cv2 is not None:
+        cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(threads)
+        if cv2 is not None:
+            cv2.setNumThreads(cv_threads)
 
 
 def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
@@ -53,13 +73,18 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
             ms = median_ms(lambda: dense_flow(img[:1], img[1:]))
         tag = f", motion x{amplitude:.0f}"
         results.setdefault("ours, torch (differentiable)" + tag, []).append((endpoint_error(flow, truth, mask).item(), ms))
-        for name, settings in (("ours, compiled (flow.OpticalFlow)", FlowSettings()),
-                               ("ours, compiled, skip_levels=1", FlowSettings(skip_levels=1)),
+        for name, settings in (("ours, compiled (flow.OpticalFlow defaults)", FlowSettings()),
+                               ("ours, compiled, finest_warps=8", FlowSettings(finest_warps=8)),
                                ("ours, compiled, fast (skip 1, 7 warps, median/warp, alpha .07)",
                                 FlowSettings(skip_levels=1, warps=7, median_every_warp=True, alpha=0.07))):
             fast = torch.as_tensor(dense_flow_numpy(img[:1], img[1:], settings))[None]
+            epe = endpoint_error(fast, truth, mask).item()
             ms = median_ms(lambda: dense_flow_numpy(img[:1], img[1:], settings))
-            results.setdefault(name + tag, []).append((endpoint_error(fast, truth, mask).item(), ms))
+            results.setdefault(name + tag, []).append((epe, ms))
+            if settings == FlowSettings():  # one thread each, ours and DIS: the cost without threading
+                with one_thread(cv2):
+                    ms = median_ms(lambda: dense_flow_numpy(img[:1], img[1:], settings))
+                results.setdefault(name + ", 1 thread" + tag, []).append((epe, ms))
         results.setdefault("|true motion|" + tag, []).append((truth.norm(dim=1)[mask].mean().item(), 0.0))
         if cv2 is None:
             continue
@@ -72,6 +97,10 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
             ms = median_ms(lambda: dis.calc(u8[0], u8[1], None))
             epe = endpoint_error(torch.as_tensor(d).permute(2, 0, 1)[None], truth, mask).item()
             results.setdefault(name + tag, []).append((epe, ms))
+            if preset == cv2.DISOPTICAL_FLOW_PRESET_MEDIUM:
+                with one_thread(cv2):
+                    ms = median_ms(lambda: dis.calc(u8[0], u8[1], None))
+                results.setdefault(name + ", 1 thread" + tag, []).append((epe, ms))
     return sorted([(name, float(np.mean([r[0] for r in rows])), float(np.median([r[1] for r in rows])))
                    for name, rows in results.items()], key=lambda row: row[0].rpartition(",")[2])
 
@@ -164,6 +193,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    import numba
+
+    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     print(f"torch {torch.__version__}, {args.threads} threads; flow on {args.pairs} face-render pairs at "
           f"{args.size}^2")
     print(f"{'flow':66s} {'EPE px':>8s} {'ms/pair':>8s}")

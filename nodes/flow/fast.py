@@ -1,13 +1,18 @@
 """The forward pass of `nodes.flow.dense.dense_flow`, compiled: the same model, counts and
 arithmetic (float32, summed in another order: results agree to about 1e-4 px on average,
-1e-2 px at worst near silhouettes), as numba kernels (row-parallel
-over numba's threads) per warp instead of thousands of small torch operations per pair (256^2,
-2 cores: 12 ms against 125 ms). For plate flow, where no gradient is needed (`flow.OpticalFlow` on the CPU); the
-torch version stays the differentiable one. Agreement: tests/nodes/flow/test_fast_flow.py.
+1e-2 px at worst near silhouettes), as numba kernels per warp instead of thousands of small
+torch operations per pair (256^2, 2 cores, the defaults: 5.5 ms against 87 ms). For plate
+flow, where no gradient is needed (`flow.OpticalFlow` on the CPU); the torch version stays the
+differentiable one. Agreement: tests/nodes/flow/test_fast_flow.py.
+
+Threads: the Jacobi sweeps run over row strips, one per numba thread, several sweeps per
+parallel launch (each strip recomputes a halo of rows, so the result is the same bit for bit
+on any thread count); pyramid levels under `PARALLEL_PIXELS` run on one thread, where
+starting the threads would cost more than the sweep. Scratch buffers are allocated once per
+level (fresh 256^2 arrays every warp cost more in page faults than the arithmetic).
 
 This module imports numba at the top (kernels cached on disk): import it from node `run()`
-methods only.
-"""
+methods only."""
 
 from __future__ import annotations
 
@@ -17,6 +22,8 @@ import numpy as np
 from .dense import FlowSettings
 
 __all__ = ["dense_flow_numpy"]
+
+PARALLEL_PIXELS = 48 * 48  # smaller pyramid levels run on one thread
 
 
 
@@ -61,21 +68,15 @@ def _warp(img: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray, inside
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
-def _warp_solve(a1: np.ndarray, a2: np.ndarray, gx1: np.ndarray, gy1: np.ndarray, u: np.ndarray, v: np.ndarray,
-                alpha: float, eps: float, iterations: int) -> None:
-    """One warp: linearize about (u, v), then `iterations` Jacobi sweeps (in place)."""
+def _linearize(a1: np.ndarray, a2: np.ndarray, gx1: np.ndarray, gy1: np.ndarray, u: np.ndarray, v: np.ndarray,
+               alpha: float, eps: float, work: np.ndarray) -> None:
+    """A warp's linearization about (u, v): the Jacobi coefficients ix, iy, su, sv, const into
+    `work[4:9]` (`work` (9, H, W) float32 scratch)."""
     h, w = a1.shape
-    warped = np.empty_like(a1)
-    inside = np.empty_like(a1)
-    gx2 = np.empty_like(a1)
-    gy2 = np.empty_like(a1)
+    warped, inside, gx2, gy2, ix, iy, su, sv, const = (work[0], work[1], work[2], work[3], work[4], work[5],
+                                                       work[6], work[7], work[8])
     _warp(a2, u, v, warped, inside)
     _gradients(warped, gx2, gy2)
-    ix = np.empty_like(a1)
-    iy = np.empty_like(a1)
-    su = np.empty_like(a1)
-    sv = np.empty_like(a1)
-    const = np.empty_like(a1)
     e = np.float32(eps)
     a2_ = np.float32(alpha) * np.float32(alpha)
     for y in numba.prange(h):
@@ -90,66 +91,96 @@ def _warp_solve(a1: np.ndarray, a2: np.ndarray, gx1: np.ndarray, gy1: np.ndarray
             su[y, x] = gxx * s
             sv[y, x] = gyy * s
             const[y, x] = it - (gxx * u[y, x] + gyy * v[y, x])
-    _jacobi(u, v, ix, iy, su, sv, const, iterations)
 
 
-@numba.njit(cache=True, nogil=True)
-def _pad_edges(p: np.ndarray) -> None:
-    # replicate the interior's border into the one-pixel frame of a padded (H + 2, W + 2) array
-    h, w = p.shape[0] - 2, p.shape[1] - 2
-    for y in range(1, h + 1):
-        p[y, 0] = p[y, 1]
-        p[y, w + 1] = p[y, w]
-    for x in range(w + 2):
-        p[0, x] = p[1, x]
-        p[h + 1, x] = p[h, x]
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+def _sweep_row(pu: np.ndarray, pv: np.ndarray, qu: np.ndarray, qv: np.ndarray, j: int, y: int, ix: np.ndarray,
+               iy: np.ndarray, su: np.ndarray, sv: np.ndarray, const: np.ndarray) -> None:
+    # one Jacobi update of image row y, held in row j of the column-padded buffers p (old), q (new)
+    w = ix.shape[1]
+    k = np.float32(1.0 / 12.0)
+    two, four = np.float32(2.0), np.float32(4.0)
+    for x in range(w):
+        # 8-neighbour average: ([1 2 1]^T [1 2 1] - 4 delta) / 12
+        au = ((pu[j - 1, x] + two * pu[j - 1, x + 1] + pu[j - 1, x + 2])
+              + two * (pu[j, x] + two * pu[j, x + 1] + pu[j, x + 2])
+              + (pu[j + 1, x] + two * pu[j + 1, x + 1] + pu[j + 1, x + 2]) - four * pu[j, x + 1]) * k
+        av = ((pv[j - 1, x] + two * pv[j - 1, x + 1] + pv[j - 1, x + 2])
+              + two * (pv[j, x] + two * pv[j, x + 1] + pv[j, x + 2])
+              + (pv[j + 1, x] + two * pv[j + 1, x + 1] + pv[j + 1, x + 2]) - four * pv[j, x + 1]) * k
+        r = ix[y, x] * au + iy[y, x] * av + const[y, x]
+        qu[j, x + 1] = au - su[y, x] * r
+        qv[j, x + 1] = av - sv[y, x] * r
+    qu[j, 0], qu[j, w + 1] = qu[j, 1], qu[j, w]
+    qv[j, 0], qv[j, w + 1] = qv[j, 1], qv[j, w]
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
-def _jacobi(u: np.ndarray, v: np.ndarray, ix: np.ndarray, iy: np.ndarray, su: np.ndarray, sv: np.ndarray,
-            const: np.ndarray, iterations: int) -> None:
-    """`iterations` Jacobi sweeps of the linearized Euler-Lagrange equations (in place).
+def _jacobi_block(u: np.ndarray, v: np.ndarray, out_u: np.ndarray, out_v: np.ndarray, ix: np.ndarray,
+                  iy: np.ndarray, su: np.ndarray, sv: np.ndarray, const: np.ndarray, sweeps: int,
+                  strips: int) -> None:
+    """`sweeps` Jacobi sweeps from (u, v) into (out_u, out_v), in `strips` row strips at once.
 
-    The flow lives in padded arrays whose frame is refreshed from the border every sweep
-    (replicate borders, as `_neighbour_average`), so the stencil loop has no branches.
+    Each strip copies its rows and `sweeps - 1` rows either side (replicate borders at the
+    image's edges), sweeps them locally and keeps its own rows: the halo rows go stale one row
+    a sweep, so the kept rows are exactly the global sweeps' (the same arithmetic, any strip
+    count), for one parallel launch per `sweeps` sweeps instead of one per sweep.
     """
     h, w = u.shape
-    pu = np.empty((h + 2, w + 2), np.float32)
-    pv = np.empty((h + 2, w + 2), np.float32)
-    qu = np.empty((h + 2, w + 2), np.float32)
-    qv = np.empty((h + 2, w + 2), np.float32)
-    pu[1:h + 1, 1:w + 1] = u
-    pv[1:h + 1, 1:w + 1] = v
-    k = np.float32(1.0 / 12.0)
-    two, four = np.float32(2.0), np.float32(4.0)
-    for _ in range(iterations):
-        _pad_edges(pu)
-        _pad_edges(pv)
-        for y in numba.prange(h):
-            for x in range(w):
-                # 8-neighbour average: ([1 2 1]^T [1 2 1] - 4 delta) / 12
-                au = ((pu[y, x] + two * pu[y, x + 1] + pu[y, x + 2])
-                      + two * (pu[y + 1, x] + two * pu[y + 1, x + 1] + pu[y + 1, x + 2])
-                      + (pu[y + 2, x] + two * pu[y + 2, x + 1] + pu[y + 2, x + 2]) - four * pu[y + 1, x + 1]) * k
-                av = ((pv[y, x] + two * pv[y, x + 1] + pv[y, x + 2])
-                      + two * (pv[y + 1, x] + two * pv[y + 1, x + 1] + pv[y + 1, x + 2])
-                      + (pv[y + 2, x] + two * pv[y + 2, x + 1] + pv[y + 2, x + 2]) - four * pv[y + 1, x + 1]) * k
-                r = ix[y, x] * au + iy[y, x] * av + const[y, x]
-                qu[y + 1, x + 1] = au - su[y, x] * r
-                qv[y + 1, x + 1] = av - sv[y, x] * r
-        pu, qu = qu, pu
-        pv, qv = qv, pv
-    u[:, :] = pu[1:h + 1, 1:w + 1]
-    v[:, :] = pv[1:h + 1, 1:w + 1]
+    for strip in numba.prange(strips):
+        r0, r1 = strip * h // strips, (strip + 1) * h // strips
+        lo, hi = max(r0 - (sweeps - 1), 0), min(r1 + (sweeps - 1), h)
+        n = hi - lo
+        pu = np.empty((n + 2, w + 2), np.float32)
+        pv = np.empty((n + 2, w + 2), np.float32)
+        for j in range(n + 2):
+            y = min(max(lo - 1 + j, 0), h - 1)
+            pu[j, 1:w + 1] = u[y]
+            pv[j, 1:w + 1] = v[y]
+            pu[j, 0], pu[j, w + 1] = u[y, 0], u[y, w - 1]
+            pv[j, 0], pv[j, w + 1] = v[y, 0], v[y, w - 1]
+        qu, qv = pu.copy(), pv.copy()
+        for _ in range(sweeps):
+            for j in range(1, n + 1):
+                _sweep_row(pu, pv, qu, qv, j, lo - 1 + j, ix, iy, su, sv, const)
+            if lo == 0:  # replicate the image's top and bottom rows
+                qu[0], qv[0] = qu[1], qv[1]
+            if hi == h:
+                qu[n + 1], qv[n + 1] = qu[n], qv[n]
+            pu, qu = qu, pu
+            pv, qv = qv, pv
+        for y in range(r0, r1):
+            out_u[y] = pu[y - lo + 1, 1:w + 1]
+            out_v[y] = pv[y - lo + 1, 1:w + 1]
 
 
+def _jacobi(u: np.ndarray, v: np.ndarray, ix: np.ndarray, iy: np.ndarray, su: np.ndarray, sv: np.ndarray,
+            const: np.ndarray, iterations: int, scratch: np.ndarray) -> None:
+    """`iterations` Jacobi sweeps of the linearized Euler-Lagrange equations (in place).
+
+    Blocks of sweeps per parallel launch (`_jacobi_block`), over as many row strips as numba
+    has threads; blocks short enough that the strips' halos stay a small part of their rows.
+    `scratch` (2, H, W) float32.
+    """
+    h = u.shape[0]
+    strips = numba.get_num_threads()
+    block = iterations if strips == 1 else max(1, min(iterations, h // (8 * strips)))
+    src_u, src_v, dst_u, dst_v = u, v, scratch[0], scratch[1]
+    done = 0
+    while done < iterations:
+        k = min(block, iterations - done)
+        _jacobi_block(src_u, src_v, dst_u, dst_v, ix, iy, su, sv, const, k, strips)
+        src_u, src_v, dst_u, dst_v = dst_u, dst_v, src_u, src_v
+        done += k
+    if src_u is not u:
+        u[:] = src_u
+        v[:] = src_v
 
 
 @numba.njit(cache=True, nogil=True)
-def _median3(f: np.ndarray) -> None:
-    # separable 3x3 median: median of 3 along x, then along y, replicate borders (in place)
+def _median3(f: np.ndarray, t: np.ndarray) -> None:
+    # separable 3x3 median: median of 3 along x, then along y, replicate borders (in place; t scratch)
     h, w = f.shape
-    t = np.empty_like(f)
     for y in range(h):
         for x in range(w):
             a, b, c = f[y, _clamp(x - 1, w)], f[y, x], f[y, _clamp(x + 1, w)]
@@ -181,55 +212,120 @@ def _blur_down(img: np.ndarray) -> np.ndarray:
     return out
 
 
+@numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+def _upsample(f: np.ndarray, out: np.ndarray, factor: float) -> None:
+    # bilinear resize of f into out (torch's interpolate, align_corners=False), times `factor`
+    h, w = f.shape
+    oh, ow = out.shape
+    sy, sx = np.float32(h / oh), np.float32(w / ow)
+    c = np.float32(factor)
+    for i in numba.prange(oh):
+        py = max((i + np.float32(0.5)) * sy - np.float32(0.5), np.float32(0.0))
+        y0 = min(int(py), h - 1)
+        y1 = min(y0 + 1, h - 1)
+        fy = py - y0
+        for j in range(ow):
+            px = max((j + np.float32(0.5)) * sx - np.float32(0.5), np.float32(0.0))
+            x0 = min(int(px), w - 1)
+            x1 = min(x0 + 1, w - 1)
+            fx = px - x0
+            top = f[y0, x0] * (np.float32(1.0) - fx) + f[y0, x1] * fx
+            bottom = f[y1, x0] * (np.float32(1.0) - fx) + f[y1, x1] * fx
+            out[i, j] = (top * (np.float32(1.0) - fy) + bottom * fy) * c
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _luminance(img: np.ndarray) -> np.ndarray:
+    # (C, H, W) -> (H, W): Rec. 709 luma for C = 3, the channel mean otherwise (`dense.luminance`)
+    c, h, w = img.shape
+    out = np.zeros((h, w), np.float32)
+    for k in range(c):
+        wk = np.float32(1.0 / c)
+        if c == 3:
+            wk = np.float32((0.2126, 0.7152, 0.0722)[k])
+        for y in range(h):
+            for x in range(w):
+                out[y, x] += wk * img[k, y, x]
+    return out
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _normalize_pair(i1: np.ndarray, i2: np.ndarray) -> None:
+    # the pair's common contrast normalization of `dense_flow`: (I - mean) / (mean abs deviation) / 4
+    n = i1.size
+    a, b = i1.ravel(), i2.ravel()
+    total = 0.0  # float64 sums
+    for k in range(n):
+        total += a[k] + b[k]
+    mean = np.float32(total / (2 * n))
+    dev = 0.0
+    for k in range(n):
+        dev += abs(a[k] - mean) + abs(b[k] - mean)
+    scale = np.float32(4.0) * max(np.float32(dev / (2 * n)), np.float32(1e-6))
+    for k in range(n):
+        a[k] = (a[k] - mean) / scale
+        b[k] = (b[k] - mean) / scale
+
+
+def _resize_flow(u: np.ndarray, v: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    # `dense.upsample_flow` on the two components
+    if u.shape == (h, w):
+        return u, v
+    uu, vv = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+    _upsample(u, uu, w / u.shape[1])
+    _upsample(v, vv, h / u.shape[0])
+    return uu, vv
+
+
 def dense_flow_numpy(image1, image2, settings: FlowSettings = FlowSettings()) -> np.ndarray:
     """`dense_flow` (same arguments, torch tensors (1, C, H, W) on the CPU) without gradients.
 
     Returns:
         (2, H, W) float32 flow, pixels (x right, y down).
     """
-    import torch
-
-    from .dense import _iterations_at, luminance, upsample_flow
+    from .dense import _iterations_at, _warps_at
 
     if image1.ndim != 4 or image1.shape != image2.shape or image1.shape[0] != 1:
         raise ValueError(f"image1, image2: expected two (1, C, H, W) tensors of one shape, found "
                          f"{tuple(image1.shape)} and {tuple(image2.shape)}")
     s = settings
-    with torch.no_grad():
-        i1 = luminance(image1.float())[0, 0].numpy().astype(np.float32)
-        i2 = luminance(image2.float())[0, 0].numpy().astype(np.float32)
-        mean = np.float32(0.5) * (i1.mean(dtype=np.float32) + i2.mean(dtype=np.float32))
-        scale = max(np.float32(0.5) * (np.abs(i1 - mean).mean(dtype=np.float32)
-                                       + np.abs(i2 - mean).mean(dtype=np.float32)), np.float32(1e-6))
-        i1 = ((i1 - mean) / scale * np.float32(0.25)).astype(np.float32)
-        i2 = ((i2 - mean) / scale * np.float32(0.25)).astype(np.float32)
-        pyr1, pyr2 = [i1], [i2]
-        while len(pyr1) < s.levels and min(pyr1[-1].shape) // 2 >= s.min_size:
-            pyr1.append(_blur_down(pyr1[-1]))
-            pyr2.append(_blur_down(pyr2[-1]))
-        levels = len(pyr1)
-        flow = None
-        last = min(max(s.skip_levels, 0), levels - 1)
+    i1 = _luminance(np.ascontiguousarray(image1[0].detach().float().numpy()))
+    i2 = _luminance(np.ascontiguousarray(image2[0].detach().float().numpy()))
+    _normalize_pair(i1, i2)
+    pyr1, pyr2 = [i1], [i2]
+    while len(pyr1) < s.levels and min(pyr1[-1].shape) // 2 >= s.min_size:
+        pyr1.append(_blur_down(pyr1[-1]))
+        pyr2.append(_blur_down(pyr2[-1]))
+    levels = len(pyr1)
+    u = v = None
+    last = min(max(s.skip_levels, 0), levels - 1)
+    threads = numba.get_num_threads()
+    try:
         for level in range(levels - 1, last - 1, -1):
             a1, a2 = pyr1[level], pyr2[level]
             h, w = a1.shape
-            if flow is None:
-                flow = torch.zeros(1, 2, h, w)
+            # numba's threads only where a sweep outweighs their start (~20 us per parallel loop)
+            numba.set_num_threads(threads if h * w >= PARALLEL_PIXELS else 1)
+            if u is None:
+                u, v = np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
             else:
-                flow = upsample_flow(flow, (h, w))
-            u = np.ascontiguousarray(flow[0, 0].numpy())
-            v = np.ascontiguousarray(flow[0, 1].numpy())
+                u, v = _resize_flow(u, v, h, w)
             gx1, gy1 = np.empty_like(a1), np.empty_like(a1)
-            _gradients(a1, gx1, gy1)
+            work = np.empty((9, h, w), np.float32)
+            scratch = np.empty((2, h, w), np.float32)
             iters = _iterations_at(level, levels, s)
-            for _ in range(s.warps):
-                _warp_solve(a1, a2, gx1, gy1, u, v, s.alpha, s.eps, iters)
+            _gradients(a1, gx1, gy1)
+            for _ in range(_warps_at(level, h * w, s)):
+                _linearize(a1, a2, gx1, gy1, u, v, s.alpha, s.eps, work)
+                _jacobi(u, v, work[4], work[5], work[6], work[7], work[8], iters, scratch)
                 if s.median and s.median_every_warp:
-                    _median3(u)
-                    _median3(v)
+                    _median3(u, work[0])
+                    _median3(v, work[0])
             if s.median and not s.median_every_warp:
-                _median3(u)
-                _median3(v)
-            flow = torch.as_tensor(np.stack([u, v]))[None]
-        flow = upsample_flow(flow, image1.shape[-2:])
-    return flow[0].numpy()
+                _median3(u, work[0])
+                _median3(v, work[0])
+        numba.set_num_threads(threads)
+        u, v = _resize_flow(u, v, *i1.shape)
+    finally:
+        numba.set_num_threads(threads)
+    return np.stack([u, v])

@@ -36,6 +36,17 @@ def test_compiled_flow_equals_the_torch_flow(pair, settings):
     assert diff.mean() < 2e-4 and diff.max() < 2e-2, (diff.mean(), diff.max())
 
 
+def test_compiled_flow_equals_the_torch_flow_with_few_finest_warps(pair):
+    big = torch.nn.functional.interpolate(pair, size=(150, 170), mode="bilinear", align_corners=False)
+    settings = FlowSettings(finest_warps=1)  # 150 x 170 is over FEW_WARPS_PIXELS: one warp there
+    with torch.no_grad():
+        ref = dense_flow(big[:1], big[1:], settings)[0].numpy()
+        more = dense_flow(big[:1], big[1:], FlowSettings(finest_warps=3))[0].numpy()
+    diff = np.abs(dense_flow_numpy(big[:1], big[1:], settings) - ref)
+    assert diff.mean() < 2e-4 and diff.max() < 2e-2, (diff.mean(), diff.max())
+    assert np.abs(more - ref).max() > 1e-2  # the finest level's warps count
+
+
 def test_compiled_flow_on_odd_sizes_and_grey_images():
     rng = np.random.default_rng(0)
     base = rng.uniform(size=(1, 1, 45, 61)).astype(np.float32)
@@ -55,3 +66,20 @@ def test_node_on_the_cpu_uses_the_compiled_flow(pair):
     want = dense_flow_numpy(pair[:1], pair[1:], FlowSettings(skip_levels=1)).transpose(1, 2, 0)
     np.testing.assert_allclose(out.flow[0], want, atol=1e-6)
     assert out.valid.tolist() == [True, False]
+
+
+def test_compiled_flow_is_the_same_on_any_thread_count(pair):
+    numba = pytest.importorskip("numba")
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread")
+    threads = numba.get_num_threads()
+    big = torch.nn.functional.interpolate(pair, size=(160, 160), mode="bilinear", align_corners=False)
+    try:  # row strips with recomputed halos: the strips' sweeps are the global ones, bit for bit
+        numba.set_num_threads(1)
+        one = dense_flow_numpy(big[:1], big[1:])
+        numba.set_num_threads(2)
+        two = dense_flow_numpy(big[:1], big[1:])
+    finally:
+        numba.set_num_threads(threads)
+    assert np.abs(one).max() > 0.5
+    np.testing.assert_array_equal(one, two)

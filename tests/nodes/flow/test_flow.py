@@ -91,7 +91,7 @@ def test_dense_flow_gradients_reach_both_images():
     a = torch.rand(1, 1, 6, 6, dtype=torch.float64, generator=gen, requires_grad=True)
     b = (a.detach().roll(1, 3) + 0.05 * torch.rand(1, 1, 6, 6, dtype=torch.float64, generator=gen))
     b.requires_grad_(True)
-    s = FlowSettings(levels=1, warps=1, iterations=2, finest_iterations=2, median=False)
+    s = FlowSettings(levels=1, warps=1, finest_warps=1, iterations=2, finest_iterations=2, median=False)
     assert torch.autograd.gradcheck(lambda x, y: dense_flow(x, y, s), (a, b), eps=1e-6, atol=1e-4)
 
 
