@@ -8,6 +8,7 @@ Runs on the CPU (this machine has no GPU); torch threads as torch chooses.
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
 
 import numpy as np
@@ -30,7 +31,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rounds", type=int, default=4)
-    ap.add_argument("--identity", default="estimate", choices=["estimate", "mean"])
+    ap.add_argument("--identity", default="estimate", choices=["estimate", "mean", "truth"],
+                    help="truth: the plates' own identity, read from a file (the fit without identity error)")
     args = ap.parse_args()
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
@@ -46,12 +48,17 @@ def main() -> None:
     views = dict(landmarks=[marks], boxes=[det["boxes"]], cameras=[cam])
     # as graphs/fit_video.json: identity with the default appearance, the appearance of that
     # identity, the identity again with that appearance
+    ident_params = {"mode": args.identity, "frames_used": 8}
+    if args.identity == "truth":
+        tmp = tempfile.mkdtemp()
+        np.savez(f"{tmp}/identity.npz", identity=truth["identity"])
+        ident_params = {"mode": "file", "path": f"{tmp}/identity.npz"}
     t = time.perf_counter()
-    first = run_node(EstimateIdentity, {"mode": args.identity, "frames_used": 8}, frames=range(f), model=model, **views)
+    first = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **views)
     app = run_node(EstimateAppearance, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
                    model=first["fitted_model"])
     common = dict(views, appearance=app["appearance"])
-    ident = run_node(EstimateIdentity, {"mode": args.identity, "frames_used": 8}, frames=range(f), model=model, **common)
+    ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **common)
     times["identity + appearance (once, per shot)"] = time.perf_counter() - t
     fitted = ident["fitted_model"]
     t = time.perf_counter()
@@ -69,6 +76,9 @@ def main() -> None:
     rot = rotation_error_deg(v[ok, :9].reshape(-1, 3, 3), truth["rotation"][ok])
     dt = np.abs(v[ok, 9:12] - truth["translation"][ok])
     jaw = np.abs(v[ok, 12 + j] - truth["weights"][ok, j])
+    est = np.asarray(ident["identity"].value["identity"])
+    print(f"identity: norm {np.linalg.norm(est):.2f} (truth {np.linalg.norm(truth['identity']):.2f}), "
+          f"error norm {np.linalg.norm(est - truth['identity']):.2f}")
     print(f"accuracy ({ok.sum()} fitted frames, identity={args.identity}): median / 90th percentile")
     for name, e in (("rotation deg", rot), ("x cm", dt[:, 0]), ("y cm", dt[:, 1]), ("depth cm", dt[:, 2]),
                     ("jawOpen", jaw)):
