@@ -33,6 +33,9 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--identity", default="estimate", choices=["estimate", "mean", "truth"],
                     help="truth: the plates' own identity, read from a file (the fit without identity error)")
+    ap.add_argument("--albedo-prior", type=float, default=None, help="fit.EstimateAppearance prior_weight")
+    ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
+    ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
     args = ap.parse_args()
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
@@ -49,13 +52,18 @@ def main() -> None:
     # as graphs/fit_video.json: identity with the default appearance, the appearance of that
     # identity, the identity again with that appearance
     ident_params = {"mode": args.identity, "frames_used": 8}
+    if args.identity_prior is not None:
+        ident_params["identity_prior"] = args.identity_prior
     if args.identity == "truth":
         tmp = tempfile.mkdtemp()
         np.savez(f"{tmp}/identity.npz", identity=truth["identity"])
         ident_params = {"mode": "file", "path": f"{tmp}/identity.npz"}
     t = time.perf_counter()
     first = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **views)
-    app = run_node(EstimateAppearance, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
+    app_params = {} if args.albedo_prior is None else {"prior_weight": args.albedo_prior}
+    if args.render_noise is not None:
+        app_params["noise"] = args.render_noise
+    app = run_node(EstimateAppearance, app_params, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
                    model=first["fitted_model"])
     common = dict(views, appearance=app["appearance"])
     ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **common)
