@@ -36,6 +36,7 @@ def main() -> None:
     ap.add_argument("--albedo-prior", type=float, default=None, help="fit.EstimateAppearance prior_weight")
     ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
+    ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
     args = ap.parse_args()
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
@@ -54,6 +55,8 @@ def main() -> None:
     ident_params = {"mode": args.identity, "frames_used": 8}
     if args.identity_prior is not None:
         ident_params["identity_prior"] = args.identity_prior
+    if args.identity_iterations is not None:
+        ident_params["iterations"] = args.identity_iterations
     if args.identity == "truth":
         tmp = tempfile.mkdtemp()
         np.savez(f"{tmp}/identity.npz", identity=truth["identity"])
