@@ -240,17 +240,17 @@ class EstimateAppearance(Node):
                                                      "default appearance (render.DefaultAppearance's).")
         frame: int = Param(-1, ge=-1, description="Frame (index in the shot) to estimate from; -1 = the "
                            "detected frame with the least open mouth.")
-        prior_weight: float = Param(30.0, ge=0, description="Pull of each vertex's albedo toward the default "
-                                    "(pixels' worth of evidence; one frame's albedo carries its noise and its pose "
-                                    "error, which the network then reads on every render: bench/fit.py seeds 0 and "
-                                    "1, median rotation error 2.5 deg with 1, 1.9 with 30).")
+        prior_weight: float = Param(1.0, ge=0, description="Pull of each vertex's albedo toward the default "
+                                    "(pixels' worth of evidence).")
         iterations: int = Param(10, ge=1, le=500, description="Levenberg-Marquardt iterations per rigid stage.")
         rounds: int = Param(4, ge=1, le=10, description="Outer rounds of the rigid fit (see fit.RigidPose).")
         passes: int = Param(2, ge=1, le=5, description="Alternations of rigid pose (with the current "
                             "appearance) and appearance (at that pose).")
-        noise: float = Param(-1.0, ge=-1, description="The plate's pixel noise (standard deviation, linear), "
-                             "added to the fit's renders so that the network reads both alike; -1 = estimated "
-                             "from the plate's frame (fit.appearance.estimate_noise), 0 = none.")
+        noise: float = Param(0.0, ge=-1, description="Pixel noise (standard deviation, linear) added to the fit's "
+                             "renders so that the network reads them as it reads a noisy plate; -1 = the plate's, "
+                             "estimated (fit.appearance.estimate_noise). Off by default: with the true appearance it "
+                             "helps (bench/fit.py, true identity: median rotation 1.3 -> 1.0 deg), but an estimated "
+                             "albedo already carries the plate's noise and it then hurts (1.6 -> 2.2 deg).")
 
     images = In(ImageSequence, doc="Plate of the first camera.")
     landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks of the first camera, pixels.")

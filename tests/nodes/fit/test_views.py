@@ -1,0 +1,94 @@
+"""nodes.fit.views.render_crops renders what `crop_and_resize` makes of the plate (the head
+rendered at the plate's size, then cropped and resized), for a face smaller and larger than
+the network's crop; the plate's noise, when added, does not depend on the batch;
+nodes.fit.appearance.estimate_noise on known noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nodegraph import Camera  # noqa: E402
+from nodes.fit.appearance import estimate_noise  # noqa: E402
+from nodes.fit.views import FitModel, FitViews, crop_intrinsics, render_crops  # noqa: E402
+from nodes.io.face_model import load_face_model  # noqa: E402
+from nodes.landmarks.network import crop_and_resize  # noqa: E402
+from nodes.render.appearance import default_albedo, default_sh, hidden_faces  # noqa: E402
+from nodes.render.renderer import render_mesh  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def model():
+    face = load_face_model()
+    faces = np.delete(np.asarray(face.faces), hidden_faces(face.faces), axis=0)
+    return FitModel.build(face.neutral, face.expression_deltas, face.expression_names, faces, face.landmarks,
+                          default_albedo(face), default_sh(), np.array([0.2, 0.25, 0.3]))
+
+
+def _scene(model: FitModel, size: int, distance: float, boxes: list[list[float]]):
+    cam = Camera.from_fov(size, size, 30.0)
+    views = FitViews(target=torch.zeros(len(boxes), 1, 68, 2), boxes=torch.tensor(boxes)[:, None],
+                     seen=torch.ones(len(boxes), 1, dtype=torch.bool),
+                     world_to_camera=torch.as_tensor(cam.world_to_camera, dtype=torch.float32)[None],
+                     intrinsics=torch.tensor([[cam.fx, cam.fy, cam.cx, cam.cy]]), distortion=None,
+                     image_size=torch.tensor([[size, size]]))
+    rot = torch.diag(torch.tensor([1.0, -1.0, -1.0])).expand(len(boxes), 3, 3)
+    trans = torch.tensor([[0.5, -1.0, distance]]).expand(len(boxes), 3)
+    verts = model.vertices(torch.zeros(len(boxes), model.deltas.shape[0]), rot, trans)
+    return cam, views, verts
+
+
+@pytest.mark.parametrize("size, distance, box", [
+    (256, 65.0, [70.3, 60.7, 190.1, 180.5]),  # box 120 px < 192: upsampled
+    (800, 50.0, [230.6, 180.2, 650.4, 600.0]),  # box 420 px: box-filtered by 2, then resampled
+])
+def test_render_crops_is_the_crop_of_a_plate_sized_render(model, size, distance, box):
+    cam, views, verts = _scene(model, size, distance, [box])
+    with torch.no_grad():
+        crop, triangle, pix = render_crops(model, views, verts, size=192, supersample=2)
+        full = render_mesh(verts, model.faces, views.world_to_camera, views.intrinsics, size, size,
+                           albedo=model.albedo, sh=model.sh, background=model.background, supersample=2,
+                           adjacency=model.adjacency).image
+        reference = crop_and_resize(full, torch.tensor([box]), 192)
+    diff = (crop - reference).abs()
+    assert crop.shape == (1, 192, 192, 3) and triangle.shape == (1, 192, 192)
+    assert diff.mean() < 1e-3 and diff.max() < 0.2, (diff.mean(), diff.max())  # max: silhouette pixels
+    direct = render_mesh(verts, model.faces, views.world_to_camera,  # the head rendered straight at 192^2
+                         crop_intrinsics(views.intrinsics, views.boxes, 192)[0], 192, 192, albedo=model.albedo,
+                         sh=model.sh, background=model.background, supersample=2, adjacency=model.adjacency).image
+    print("mean difference to the plate's crop: ours", diff.mean().item(), "direct",
+          (direct - reference).abs().mean().item())
+    assert (direct - reference).abs().mean() > 3 * diff.mean()
+    assert (triangle >= 0).float().mean() > 0.3  # the head fills the crop
+    # the projected vertices are in crop pixels: the visible triangles lie under their corners
+    ys, xs = torch.nonzero(triangle[0] >= 0, as_tuple=True)
+    corner = pix[0, torch.as_tensor(model.faces)[triangle[0, ys, xs]]].mean(1)
+    assert (corner - torch.stack([xs, ys], -1)).norm(dim=-1).median() < 1.5
+
+
+def test_render_noise_is_the_same_in_any_batch(model):
+    box = [70.3, 60.7, 190.1, 180.5]
+    noisy = FitModel(**{**model.__dict__, "noise": 0.02})
+    _, one, v1 = _scene(model, 256, 65.0, [box])
+    _, two, v2 = _scene(model, 256, 65.0, [[60.0, 50.0, 200.0, 190.0], box])
+    with torch.no_grad():
+        alone = render_crops(noisy, one, v1)[0]
+        batch = render_crops(noisy, two, v2)[0]
+        clean = render_crops(model, one, v1)[0]
+    torch.testing.assert_close(alone[0], batch[1], atol=1e-5, rtol=0)  # another render size: float rounding
+    # box 120 px, upsampled to 192: the plate's per-pixel noise is bilinearly interpolated
+    assert 0.005 < (alone - clean).std().item() < 0.02
+
+
+def test_estimate_noise_on_known_noise():
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:200, 0:240] / 200.0
+    smooth = np.stack([0.3 + 0.2 * x, 0.4 + 0.1 * np.sin(3 * y), 0.5 * x * y], -1)
+    smooth[80:120, 60:180] += 0.3  # an edge: a minority of pixels
+    assert estimate_noise(smooth) < 1e-3
+    for sigma in (0.003, 0.02):
+        est = estimate_noise(smooth + rng.normal(0, sigma, smooth.shape))
+        assert abs(est - sigma) < 0.1 * sigma, (est, sigma)
+    assert estimate_noise(np.zeros((2, 5, 3))) == 0.0
