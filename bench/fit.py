@@ -37,6 +37,8 @@ def main() -> None:
     ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
     ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
+    ap.add_argument("--identity-points", type=int, default=468, choices=[68, 468],
+                    help="landmarks the identity is estimated from (as graphs/fit_video.json: 468, the 68 then 400 more face-mesh points)")
     args = ap.parse_args()
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
@@ -47,9 +49,12 @@ def main() -> None:
     times = {}
     t = time.perf_counter()
     det = run_node(DetectFaces, images=seq)
-    marks = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])["landmarks68"]
+    lm_out = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])
+    marks = lm_out["landmarks68"]
+    id_marks = lm_out["landmarks468"] if args.identity_points == 468 else marks
     times["detection + landmarks"] = (time.perf_counter() - t) / f
     views = dict(landmarks=[marks], boxes=[det["boxes"]], cameras=[cam])
+    id_views = dict(views, landmarks=[id_marks])
     # as graphs/fit_video.json: identity with the default appearance, the appearance of that
     # identity, the identity again with that appearance
     ident_params = {"mode": args.identity, "frames_used": 8}
@@ -62,14 +67,14 @@ def main() -> None:
         np.savez(f"{tmp}/identity.npz", identity=truth["identity"])
         ident_params = {"mode": "file", "path": f"{tmp}/identity.npz"}
     t = time.perf_counter()
-    first = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **views)
+    first = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **id_views)
     app_params = {} if args.albedo_prior is None else {"prior_weight": args.albedo_prior}
     if args.render_noise is not None:
         app_params["noise"] = args.render_noise
     app = run_node(EstimateAppearance, app_params, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
                    model=first["fitted_model"])
     common = dict(views, appearance=app["appearance"])
-    ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **common)
+    ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **dict(common, landmarks=[id_marks]))
     times["identity + appearance (once, per shot)"] = time.perf_counter() - t
     fitted = ident["fitted_model"]
     t = time.perf_counter()

@@ -152,7 +152,8 @@ def landmark_energy(predicted: Tensor, target: Tensor, scale: Tensor, weights: T
     """E1 + mu E2 of the module docstring, per frame.
 
     Args:
-        predicted: (B, C, L, 2) render landmarks q, image pixels.
+        predicted: (B, C, L, 2) render landmarks q, image pixels (the 68 Multi-PIE points
+            first; the edge term is on those).
         target: (B, C, L, 2) plate landmarks p*, image pixels (rows of unseen views: any finite value).
         scale: (B, C) 256 / crop side, 0 for a view that did not see the face.
         weights: (L,) or (B, C, L) per-landmark weights W.
@@ -163,7 +164,7 @@ def landmark_energy(predicted: Tensor, target: Tensor, scale: Tensor, weights: T
     r = (target - predicted) * scale[..., None, None]
     w = weights if weights.ndim == 3 else weights.expand(r.shape[:3])
     e = (w * (r * r).sum(-1)).sum((-1, -2))
-    if edge_weight > 0 and r.shape[2] == 68:
+    if edge_weight > 0 and r.shape[2] >= 68:  # the 68 Multi-PIE points come first
         a, b = EDGES_68[:, 0], EDGES_68[:, 1]
         de = r[:, :, b] - r[:, :, a]
         ew = ((w[..., a] > 0) & (w[..., b] > 0)).to(r.dtype)

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import axis_angle_to_rotmat, landmark_energy, landmark_weights, project_views
 from .solve import PoseState, _anchored, _render_anchors, jaw_shapes, mouth_shapes
 from .views import Anchors, FitModel, FitViews, landmark_anchors
@@ -21,15 +22,14 @@ __all__ = ["solve_identity"]
 
 
 def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, anchors: Anchors, state: PoseState,
-                   identity: Tensor, *, prior: float, identity_prior: float, edge_weight: float,
-                   eyelid_weight: float, iterations: int) -> tuple[PoseState, Tensor]:
+                   identity: Tensor, w_lm: Tensor, *, prior: float, identity_prior: float, edge_weight: float,
+                   iterations: int) -> tuple[PoseState, Tensor]:
     neutral, deltas = _anchored(model, anchors)
     bary = anchors.bary[..., None]
     id_d = (identity_deltas[:, anchors.vertices] * bary[None]).sum(-2).permute(1, 2, 3, 0, 4)  # (B, C, L, I, 3)
     b = state.rot.shape[0]
     shapes = torch.as_tensor(sorted(set(jaw_shapes(model.names)) | set(mouth_shapes(model.names))),
                              device=neutral.device)
-    w_lm = torch.as_tensor(landmark_weights("all", eyelid=eyelid_weight), device=neutral.device)
     omega = torch.zeros(b, 3, requires_grad=True)
     trans = state.trans.clone().requires_grad_(True)
     active = state.weights[:, shapes].clone().requires_grad_(True)
@@ -63,28 +63,42 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
 def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews, state: PoseState,
                    network: torch.nn.Module, *, outer: int = 2, prior: float = 100.0, identity_prior: float = 20.0,
                    edge_weight: float = 1.0, eyelid_weight: float = 0.2, iterations: int = 40,
-                   supersample: int = 2) -> tuple[np.ndarray, PoseState]:
+                   supersample: int = 2, extra_points: np.ndarray | None = None,
+                   extra_weight: float = 0.25) -> tuple[np.ndarray, PoseState]:
     """Estimate the identity shared by the frames of `views` (see the module docstring).
 
     Args:
         model: the model with the *mean* neutral (identity 0).
         identity_deltas: (I, V, 3) cm per unit.
-        views, state: the frames used and their rigid start.
+        views, state: the frames used and their rigid start; `views.target` holds the 68
+            Multi-PIE points, then the face-mesh points `extra_points` (if any).
         identity_prior: lambda_id, 256-crop pixel^2 per unit^2, summed over the frames' energies.
+        extra_points: (E,) face-mesh indices of the targets past the 68, or None. They count
+            from the first round anchored on a render (they have no model vertex before), with
+            weight `extra_weight` each.
     Returns:
         identity (I,) float32 and the frames' final states.
     """
     id_t = torch.as_tensor(np.asarray(identity_deltas, np.float32), device=model.neutral.device)
     identity = torch.zeros(id_t.shape[0])
     b, c = views.seen.shape
-    fallback = landmark_anchors(model, b, c)
+    extra = np.zeros(0, np.int64) if extra_points is None else np.asarray(extra_points, np.int64)
+    if views.target.shape[2] != 68 + len(extra):
+        raise ValueError(f"views.target: expected {68 + len(extra)} points (68 + extra_points), found "
+                         f"{views.target.shape[2]}")
+    indices = np.concatenate([MEDIAPIPE_TO_68, extra])
+    fallback = landmark_anchors(model, b, c, len(indices))
+    w68 = torch.as_tensor(landmark_weights("all", eyelid=eyelid_weight), device=model.neutral.device)
     base = model.neutral.clone()
     for r in range(outer + 1):
         model.neutral = base + torch.einsum("i,ivd->vd", identity, id_t)
-        anchors = fallback if r == 0 else _render_anchors(model, views, state, network, fallback, supersample)[0]
+        anchors = fallback if r == 0 else _render_anchors(model, views, state, network, fallback, supersample,
+                                                          indices)[0]
         model.neutral = base
-        state, identity = _identity_step(model, id_t, views, anchors, state, identity, prior=prior,
+        w_extra = anchors.rendered.to(w68.dtype)[..., None] * extra_weight  # (B, C, 1)
+        w_lm = torch.cat([w68.expand(b, c, 68), w_extra.expand(b, c, len(extra))], -1)
+        state, identity = _identity_step(model, id_t, views, anchors, state, identity, w_lm, prior=prior,
                                          identity_prior=identity_prior, edge_weight=edge_weight,
-                                         eyelid_weight=eyelid_weight, iterations=iterations)
+                                         iterations=iterations)
     model.neutral = base
     return identity.numpy().astype(np.float32), state

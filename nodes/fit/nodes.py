@@ -44,7 +44,8 @@ _MIN_PRESENCE = 0.5
 
 
 # -- shared helpers --------------------------------------------------------------------------
-def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera]) -> None:
+def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
+                 allow_mesh: bool = False) -> None:
     if not cameras:
         raise InputError("cameras", "expected at least one camera, found none")
     if len(landmarks) != len(cameras) or len(boxes) != len(cameras):
@@ -52,8 +53,10 @@ def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], camer
                          f"found {len(landmarks)} landmarks and {len(boxes)} boxes")
     frames = landmarks[0].points.shape[0]
     for c, (lm, bx) in enumerate(zip(landmarks, boxes)):
-        if lm.points.shape[1:] != (68, 2):
-            raise InputError("landmarks", f"camera {c}: expected (F, 68, 2) Multi-PIE points, found {lm.points.shape}")
+        if lm.points.shape[1:] != (68, 2) and not (allow_mesh and lm.points.shape[1:] == (468, 2)):
+            want = "(F, 68, 2) Multi-PIE points or (F, 468, 2) face-mesh points" if allow_mesh else \
+                "(F, 68, 2) Multi-PIE points"
+            raise InputError("landmarks", f"camera {c}: expected {want}, found {lm.points.shape}")
         if bx.values.shape != (frames, 4):
             raise InputError("boxes", f"camera {c}: expected ({frames}, 4) x0 y0 x1 y1 boxes, found {bx.values.shape}")
         if lm.points.shape[0] != frames:
@@ -61,13 +64,21 @@ def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], camer
 
 
 def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera], device: str,
-           select: np.ndarray | None = None) -> Any:
+           select: np.ndarray | None = None, allow_mesh: bool = False) -> Any:
+    """FitViews of the landmarks: targets (F, C, 68, 2), or with `allow_mesh` and 468-point
+    landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`."""
     import torch
 
-    from .views import FitViews
+    from ..landmarks.correspondence import MEDIAPIPE_TO_68
+    from .views import MESH_EXTRA_POINTS, FitViews
 
-    _check_views(landmarks, boxes, cameras)
-    pts = np.stack([lm.points for lm in landmarks], 1).astype(np.float32)  # (F, C, 68, 2)
+    _check_views(landmarks, boxes, cameras, allow_mesh)
+    if len({lm.points.shape[1] for lm in landmarks}) > 1:
+        raise InputError("landmarks", f"expected one landmark scheme for every camera, found "
+                         f"{[lm.points.shape[1] for lm in landmarks]} points")
+    pts = np.stack([lm.points for lm in landmarks], 1).astype(np.float32)  # (F, C, 68 or 468, 2)
+    if pts.shape[2] == 468:
+        pts = pts[:, :, np.concatenate([MEDIAPIPE_TO_68, MESH_EXTRA_POINTS])]
     conf = np.stack([lm.confidence.min(1) for lm in landmarks], 1)  # (F, C)
     box = np.stack([b.values for b in boxes], 1).astype(np.float32)
     seen = np.isfinite(pts).all((2, 3)) & np.isfinite(box).all(2) & (conf >= _MIN_PRESENCE)
@@ -328,8 +339,12 @@ class EstimateIdentity(Node):
         identity_prior: float = Param(20.0, gt=0, description="lambda_id of |identity|^2 (components are "
                                       "N(0, 1)), 256-crop pixel^2 per unit^2.")
         iterations: int = Param(40, ge=1, le=500, description="L-BFGS iterations per round.")
+        mesh_weight: float = Param(0.25, ge=0, description="Weight of each of the 400 face-mesh points past the "
+                                   "68 (landmarks with 468 points only; the 68 weigh 1, eyelids less).")
 
-    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
+    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) Multi-PIE or (F, 468, 2) face-mesh plate landmarks "
+                   "(the identity then also fits the 400 other face-mesh points: cheeks, forehead, nose), one per "
+                   "camera.")
     boxes = In(ParamSequence, many=True, doc="Crop boxes, one per camera.")
     cameras = In(Camera, many=True, doc="The cameras, in the same order.")
     model = In(FaceModel, doc="The face model (mean identity).")
@@ -368,17 +383,22 @@ class EstimateIdentity(Node):
             from .identity import solve_identity
             from .solve import RIGID_STAGES, fit_stages, initial_pose
 
-            views = _views(landmarks, boxes, cameras, self.device)
+            from .views import MESH_EXTRA_POINTS
+
+            views = _views(landmarks, boxes, cameras, self.device, allow_mesh=True)
             found = np.flatnonzero(views.seen.any(1).cpu().numpy())
             if not len(found):
                 raise InputError("landmarks", "expected frames with a face to estimate the identity from, found none")
             pick = found[np.unique(np.linspace(0, len(found) - 1, min(p.frames_used, len(found))).round().astype(int))]
             fm = _fit_model(model, appearance, self.device)
-            sub = _views(landmarks, boxes, cameras, self.device, select=pick)
+            sub = _views(landmarks, boxes, cameras, self.device, select=pick, allow_mesh=True)
+            mesh = sub.target.shape[2] > 68
+            sub68 = dataclasses.replace(sub, target=sub.target[:, :, :68])
             net = load_face_mesh(self.device)
-            state, _, _ = fit_stages(fm, sub, initial_pose(fm, sub), RIGID_STAGES, net, outer=1, iterations=20)
+            state, _, _ = fit_stages(fm, sub68, initial_pose(fm, sub68), RIGID_STAGES, net, outer=1, iterations=20)
             ident, _ = solve_identity(fm, model.identity_deltas, sub, state, net, identity_prior=p.identity_prior,
-                                      iterations=p.iterations)
+                                      iterations=p.iterations, extra_points=MESH_EXTRA_POINTS if mesh else None,
+                                      extra_weight=p.mesh_weight)
         fitted = FaceModel(neutral=model.evaluate(np.zeros(len(model.expression_names)), ident),
                            faces=model.faces, expression_deltas=model.expression_deltas,
                            expression_names=list(model.expression_names), identity_deltas=model.identity_deltas,

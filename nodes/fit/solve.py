@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
                      project_views)
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, crop_to_image, landmark_anchors,
@@ -293,20 +294,23 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
 
 
 def _render_anchors(model: FitModel, views: FitViews, state: PoseState, network: torch.nn.Module,
-                    fallback: Anchors, supersample: int) -> tuple[Anchors, Tensor]:
+                    fallback: Anchors, supersample: int,
+                    indices: np.ndarray = MEDIAPIPE_TO_68) -> tuple[Anchors, Tensor]:
     """Render the current estimate, read it with the network, anchor its points.
 
+    Args:
+        indices: (L,) the face-mesh points anchored (`network_points`); `fallback` has L points.
     Returns:
-        anchors, and (B, C, 68, 2) the network's render points, image pixels.
+        anchors, and (B, C, L, 2) the network's render points, image pixels.
     """
     size = int(network.input_size)
     with torch.no_grad():
         verts = model.vertices(state.weights, state.rot, state.trans)
         image, triangle, pix = render_crops(model, views, verts, size=size, supersample=supersample)
-        points, presence = network_points(image, network)
+        points, presence = network_points(image, network, indices)
     anchors = anchors_from_render(model, views, triangle, pix, points, presence, fallback)
     b, c = views.seen.shape
-    return anchors, crop_to_image(points.reshape(b, c, 68, 2), views.boxes, size)
+    return anchors, crop_to_image(points.reshape(b, c, len(indices), 2), views.boxes, size)
 
 
 def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple[Stage, ...],

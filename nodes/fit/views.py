@@ -26,7 +26,7 @@ from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from ..landmarks.network import MESH_SIZE, srgb_encode
 from ..render.renderer import render_mesh, triangle_adjacency
 
-__all__ = ["FitModel", "FitViews", "Anchors", "crop_intrinsics", "crop_to_image", "image_to_crop",
+__all__ = ["FitModel", "FitViews", "Anchors", "MESH_EXTRA_POINTS", "crop_intrinsics", "crop_to_image", "image_to_crop",
            "render_crops", "network_points", "landmark_anchors", "anchors_from_render"]
 
 
@@ -107,11 +107,14 @@ class Anchors(NamedTuple):
         vertices: (B, C, L, 3) int64 triangle corners.
         bary: (B, C, L, 3) barycentric weights (sum 1).
         offset: (B, C, L, 2) network point minus the anchor's projection at anchoring time, pixels.
+        rendered: (B, C) bool, anchored on a render (False: the fallback, `landmark_anchors`,
+            whose points past the 68 are placeholders), or None.
     """
 
     vertices: Tensor
     bary: Tensor
     offset: Tensor
+    rendered: Tensor | None = None
 
 
 def crop_intrinsics(intrinsics: Tensor, boxes: Tensor, size: int) -> Tensor:
@@ -239,26 +242,36 @@ def render_crops(model: FitModel, views: FitViews, vertices: Tensor, *, size: in
     return crop, triangle, pix
 
 
-def network_points(images: Tensor, network: torch.nn.Module) -> tuple[Tensor, Tensor]:
-    """The face mesh's 68 Multi-PIE points on S x S renders (the whole render is the crop).
+MESH_EXTRA_POINTS = np.setdiff1d(np.arange(468), MEDIAPIPE_TO_68)
+"""The 400 face-mesh points that are not among the 68: `fit.EstimateIdentity` reads them after
+the 68 when given the 468-point landmarks (surface points over the cheeks, forehead and nose,
+which the identity shapes move and the 68 barely see)."""
+
+
+def network_points(images: Tensor, network: torch.nn.Module,
+                   indices: np.ndarray = MEDIAPIPE_TO_68) -> tuple[Tensor, Tensor]:
+    """Face-mesh points on S x S renders (the whole render is the crop).
 
     Args:
         images: (N, S, S, 3) linear colour (sRGB-encoded here), S = the network's input size.
         network: `MediaPipeFaceMesh` (468 points, crop pixels from the corner).
+        indices: (L,) the face-mesh points wanted (default: the 68 Multi-PIE points).
     Returns:
-        points (N, 68, 2) render pixel coordinates (centres at integers), presence (N,).
+        points (N, L, 2) render pixel coordinates (centres at integers), presence (N,).
     """
     points, presence = network(srgb_encode(images.clamp(0.0, 1.0)))
-    return points[:, MEDIAPIPE_TO_68] - 0.5, presence
+    return points[:, torch.as_tensor(indices, device=points.device)] - 0.5, presence
 
 
-def landmark_anchors(model: FitModel, b: int, c: int) -> Anchors:
-    """Anchors on the model's 68 landmark vertices (before any render): offset 0."""
+def landmark_anchors(model: FitModel, b: int, c: int, points: int = 68) -> Anchors:
+    """Anchors on the model's 68 landmark vertices (before any render): offset 0; points past
+    the 68 (`points` > 68) are placeholders on landmark 0 (`rendered` False)."""
     dev = model.neutral.device
-    ids = torch.as_tensor(model.landmarks, device=dev)[:, None].expand(68, 3)
-    bary = torch.tensor([1.0, 0.0, 0.0], device=dev).expand(68, 3)
-    return Anchors(ids.expand(b, c, 68, 3).clone(), bary.expand(b, c, 68, 3).clone(),
-                   torch.zeros(b, c, 68, 2, device=dev))
+    ids = torch.as_tensor(model.landmarks, device=dev)
+    ids = torch.cat([ids, ids[:1].expand(points - 68)])[:, None].expand(points, 3)
+    bary = torch.tensor([1.0, 0.0, 0.0], device=dev).expand(points, 3)
+    return Anchors(ids.expand(b, c, points, 3).clone(), bary.expand(b, c, points, 3).clone(),
+                   torch.zeros(b, c, points, 2, device=dev), torch.zeros(b, c, dtype=torch.bool, device=dev))
 
 
 def _barycentrics(corners: Tensor, points: Tensor) -> Tensor:
@@ -284,12 +297,12 @@ def anchors_from_render(model: FitModel, views: FitViews, triangle: Tensor, pix:
     Args:
         model, views: as in `render_crops`.
         triangle: (B * C, S, S) visible triangle; pix: (B * C, V, 2) projected vertices.
-        points: (B * C, 68, 2) the network's points on the render, render pixels.
+        points: (B * C, L, 2) the network's points on the render, render pixels.
         presence: (B * C,) the network's face presence on the render.
         fallback: anchors kept for views whose render the network did not read as a face
             (presence < `min_presence`) or that did not see the face.
     Returns:
-        Anchors (B, C, 68, ...); offsets converted to image pixels.
+        Anchors (B, C, L, ...); offsets converted to image pixels.
     """
     from scipy.ndimage import distance_transform_edt
 
@@ -297,8 +310,9 @@ def anchors_from_render(model: FitModel, views: FitViews, triangle: Tensor, pix:
     n, s = triangle.shape[:2]
     tri_np = triangle.cpu().numpy()
     pts = points.detach()
-    ij = pts.round().long().clamp(0, s - 1).cpu().numpy()  # (N, 68, 2) x, y
-    tri_ids = np.empty((n, 68), np.int64)
+    npts = pts.shape[1]
+    ij = pts.round().long().clamp(0, s - 1).cpu().numpy()  # (N, L, 2) x, y
+    tri_ids = np.empty((n, npts), np.int64)
     for m in range(n):
         grid = tri_np[m]
         if (grid >= 0).any():
@@ -309,9 +323,9 @@ def anchors_from_render(model: FitModel, views: FitViews, triangle: Tensor, pix:
             tri_ids[m] = -1
     ok_tri = tri_ids >= 0
     faces = torch.as_tensor(model.faces, device=pix.device)
-    corner_ids = faces[torch.as_tensor(np.where(ok_tri, tri_ids, 0), device=pix.device)]  # (N, 68, 3)
+    corner_ids = faces[torch.as_tensor(np.where(ok_tri, tri_ids, 0), device=pix.device)]  # (N, L, 3)
     rows = torch.arange(n, device=pix.device)[:, None, None]
-    corners = pix.detach()[rows, corner_ids]  # (N, 68, 3, 2)
+    corners = pix.detach()[rows, corner_ids]  # (N, L, 3, 2)
     bary = _barycentrics(corners, pts)
     anchor_pix = (bary[..., None] * corners).sum(-2)
     k = ((views.boxes[..., 2] - views.boxes[..., 0]) / s).reshape(n, 1, 1)
@@ -319,6 +333,6 @@ def anchors_from_render(model: FitModel, views: FitViews, triangle: Tensor, pix:
     good = (torch.as_tensor(ok_tri, device=pix.device).all(-1) & (presence.detach() >= min_presence)
             & views.seen.reshape(n)).reshape(b, c)
     g = good[..., None, None]
-    return Anchors(torch.where(g, corner_ids.reshape(b, c, 68, 3), fallback.vertices),
-                   torch.where(g, bary.reshape(b, c, 68, 3), fallback.bary),
-                   torch.where(g, offset.reshape(b, c, 68, 2), fallback.offset))
+    return Anchors(torch.where(g, corner_ids.reshape(b, c, npts, 3), fallback.vertices),
+                   torch.where(g, bary.reshape(b, c, npts, 3), fallback.bary),
+                   torch.where(g, offset.reshape(b, c, npts, 2), fallback.offset), good)

@@ -92,3 +92,31 @@ def test_estimate_noise_on_known_noise():
         est = estimate_noise(smooth + rng.normal(0, sigma, smooth.shape))
         assert abs(est - sigma) < 0.1 * sigma, (est, sigma)
     assert estimate_noise(np.zeros((2, 5, 3))) == 0.0
+
+
+def test_identity_from_the_468_face_mesh_points():
+    pytest.importorskip("tflite")
+    from nodegraph import ImageSequence, Landmarks2D, NodeError, run_node
+    from nodes.fit import EstimateIdentity
+    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from nodes.landmarks import DetectFaces, FaceLandmarks
+
+    face = load_face_model()
+    cam = Camera.from_fov(256, 256, 30.0)
+    truth = random_face_parameters(face, 2, seed=5, distance_cm=65.0)
+    seq = ImageSequence(render_plates(face, [cam], truth)[0], colour_space="linear")
+    boxes = run_node(DetectFaces, images=seq)["boxes"]
+    marks = run_node(FaceLandmarks, images=seq, boxes=boxes)
+    where = dict(frames=range(2), boxes=[boxes], cameras=[cam], model=face)
+    params = {"frames_used": 2, "iterations": 10}
+    i68 = np.asarray(run_node(EstimateIdentity, params, landmarks=[marks["landmarks68"]], **where)
+                     ["identity"].value["identity"])
+    i468 = np.asarray(run_node(EstimateIdentity, params, landmarks=[marks["landmarks468"]], **where)
+                      ["identity"].value["identity"])
+    assert np.isfinite(i468).all() and np.abs(i468 - i68).max() > 1e-3  # the 400 other points count
+    none = np.asarray(run_node(EstimateIdentity, dict(params, mesh_weight=0.0), landmarks=[marks["landmarks468"]],
+                               **where)["identity"].value["identity"])
+    np.testing.assert_allclose(none, i68, atol=1e-4)  # weight 0: the 68 alone
+    bad = Landmarks2D(marks["landmarks468"].points[:, :100], marks["landmarks468"].confidence[:, :100])
+    with pytest.raises(NodeError, match="landmarks.*468, 2"):
+        run_node(EstimateIdentity, params, landmarks=[bad], **where)
