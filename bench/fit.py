@@ -36,6 +36,8 @@ def main() -> None:
     ap.add_argument("--albedo-prior", type=float, default=None, help="fit.EstimateAppearance prior_weight")
     ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
+    ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
+    ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
     ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
     ap.add_argument("--identity-points", type=int, default=468, choices=[68, 468],
                     help="landmarks the identity is estimated from (as graphs/fit_video.json: 468, the 68 then 400 more face-mesh points)")
@@ -57,9 +59,11 @@ def main() -> None:
     id_views = dict(views, landmarks=[id_marks])
     # as graphs/fit_video.json: identity with the default appearance, the appearance of that
     # identity, the identity again with that appearance
-    ident_params = {"mode": args.identity, "frames_used": 8}
+    ident_params = {"mode": args.identity, "frames_used": args.identity_frames}
     if args.identity_prior is not None:
         ident_params["identity_prior"] = args.identity_prior
+    if args.mesh_weight is not None:
+        ident_params["mesh_weight"] = args.mesh_weight
     if args.identity_iterations is not None:
         ident_params["iterations"] = args.identity_iterations
     if args.identity == "truth":
