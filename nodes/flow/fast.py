@@ -45,6 +45,21 @@ def _gradients(img: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> None:
                         + np.float32(8.0) * img[_clamp(y + 1, h), x] - img[_clamp(y + 2, h), x]) * c
 
 
+@numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
+def _bilinear(img: np.ndarray, px: float, py: float) -> float:
+    # img sampled bilinearly at (px, py), px, py >= 0 (truncation is the floor); indices clamped
+    h, w = img.shape
+    x0 = min(int(px), w - 1)
+    y0 = min(int(py), h - 1)
+    x1 = min(x0 + 1, w - 1)
+    y1 = min(y0 + 1, h - 1)
+    fx = px - x0
+    fy = py - y0
+    top = img[y0, x0] * (np.float32(1.0) - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (np.float32(1.0) - fx) + img[y1, x1] * fx
+    return top * (np.float32(1.0) - fy) + bottom * fy
+
+
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
 def _warp(img: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray, inside: np.ndarray) -> None:
     # bilinear sample at p + flow, positions clamped to the image (grid_sample border, align_corners)
@@ -54,17 +69,8 @@ def _warp(img: np.ndarray, u: np.ndarray, v: np.ndarray, out: np.ndarray, inside
             px = x + u[y, x]
             py = y + v[y, x]
             inside[y, x] = np.float32(1.0) if (0.0 <= px <= w - 1 and 0.0 <= py <= h - 1) else np.float32(0.0)
-            px = min(max(px, np.float32(0.0)), np.float32(w - 1))
-            py = min(max(py, np.float32(0.0)), np.float32(h - 1))
-            x0 = min(int(px), w - 1)  # px, py >= 0 here: truncation is the floor
-            y0 = min(int(py), h - 1)
-            x1 = min(x0 + 1, w - 1)
-            y1 = min(y0 + 1, h - 1)
-            fx = px - x0
-            fy = py - y0
-            top = img[y0, x0] * (np.float32(1.0) - fx) + img[y0, x1] * fx
-            bottom = img[y1, x0] * (np.float32(1.0) - fx) + img[y1, x1] * fx
-            out[y, x] = top * (np.float32(1.0) - fy) + bottom * fy
+            out[y, x] = _bilinear(img, min(max(px, np.float32(0.0)), np.float32(w - 1)),
+                                  min(max(py, np.float32(0.0)), np.float32(h - 1)))
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
@@ -221,17 +227,9 @@ def _upsample(f: np.ndarray, out: np.ndarray, factor: float) -> None:
     c = np.float32(factor)
     for i in numba.prange(oh):
         py = max((i + np.float32(0.5)) * sy - np.float32(0.5), np.float32(0.0))
-        y0 = min(int(py), h - 1)
-        y1 = min(y0 + 1, h - 1)
-        fy = py - y0
         for j in range(ow):
             px = max((j + np.float32(0.5)) * sx - np.float32(0.5), np.float32(0.0))
-            x0 = min(int(px), w - 1)
-            x1 = min(x0 + 1, w - 1)
-            fx = px - x0
-            top = f[y0, x0] * (np.float32(1.0) - fx) + f[y0, x1] * fx
-            bottom = f[y1, x0] * (np.float32(1.0) - fx) + f[y1, x1] * fx
-            out[i, j] = (top * (np.float32(1.0) - fy) + bottom * fy) * c
+            out[i, j] = _bilinear(f, px, py) * c
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
