@@ -69,8 +69,8 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
     landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`."""
     import torch
 
-    from ..landmarks.correspondence import MEDIAPIPE_TO_68
-    from .views import MESH_EXTRA_POINTS, FitViews
+    from ..landmarks.correspondence import MEDIAPIPE_TO_68, MESH_EXTRA_POINTS
+    from .views import FitViews
 
     _check_views(landmarks, boxes, cameras, allow_mesh)
     if len({lm.points.shape[1] for lm in landmarks}) > 1:
@@ -379,11 +379,10 @@ class EstimateIdentity(Node):
         elif p.mode == "file":
             ident = self._read(count)
         else:
+            from ..landmarks.correspondence import MESH_EXTRA_POINTS
             from ..landmarks.network import load_face_mesh
             from .identity import solve_identity
             from .solve import RIGID_STAGES, fit_stages, initial_pose
-
-            from .views import MESH_EXTRA_POINTS
 
             views = _views(landmarks, boxes, cameras, self.device, allow_mesh=True)
             found = np.flatnonzero(views.seen.any(1).cpu().numpy())

@@ -26,7 +26,7 @@ from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from ..landmarks.network import MESH_SIZE, srgb_encode
 from ..render.renderer import render_mesh, triangle_adjacency
 
-__all__ = ["FitModel", "FitViews", "Anchors", "MESH_EXTRA_POINTS", "crop_intrinsics", "crop_to_image", "image_to_crop",
+__all__ = ["FitModel", "FitViews", "Anchors", "crop_intrinsics", "crop_to_image", "image_to_crop",
            "render_crops", "network_points", "landmark_anchors", "anchors_from_render"]
 
 
@@ -108,13 +108,13 @@ class Anchors(NamedTuple):
         bary: (B, C, L, 3) barycentric weights (sum 1).
         offset: (B, C, L, 2) network point minus the anchor's projection at anchoring time, pixels.
         rendered: (B, C) bool, anchored on a render (False: the fallback, `landmark_anchors`,
-            whose points past the 68 are placeholders), or None.
+            whose points past the 68 are placeholders).
     """
 
     vertices: Tensor
     bary: Tensor
     offset: Tensor
-    rendered: Tensor | None = None
+    rendered: Tensor
 
 
 def crop_intrinsics(intrinsics: Tensor, boxes: Tensor, size: int) -> Tensor:
@@ -240,12 +240,6 @@ def render_crops(model: FitModel, views: FitViews, vertices: Tensor, *, size: in
     triangle = out.triangle[rows, iy[:, :, None], ix[:, None, :]]
     pix = project_points_torch(verts, e, crop_intrinsics(views.intrinsics, views.boxes, size).reshape(n, 4), dist)
     return crop, triangle, pix
-
-
-MESH_EXTRA_POINTS = np.setdiff1d(np.arange(468), MEDIAPIPE_TO_68)
-"""The 400 face-mesh points that are not among the 68: `fit.EstimateIdentity` reads them after
-the 68 when given the 468-point landmarks (surface points over the cheeks, forehead and nose,
-which the identity shapes move and the 68 barely see)."""
 
 
 def network_points(images: Tensor, network: torch.nn.Module,

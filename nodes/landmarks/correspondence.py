@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MEDIAPIPE_TO_68", "MULTIPIE_68_GROUPS", "mediapipe_to_68", "mediapipe_to_model_vertices",
+__all__ = ["MEDIAPIPE_TO_68", "MESH_EXTRA_POINTS", "MULTIPIE_68_GROUPS", "mediapipe_to_68", "mediapipe_to_model_vertices",
            "outer_eye_corners_68", "inter_ocular_distance"]
 
 MEDIAPIPE_TO_68 = np.array([
@@ -55,6 +55,10 @@ MEDIAPIPE_TO_68 = np.array([
     76, 81, 13, 311, 306, 402, 14, 178,  # inner lip 60-67
 ], dtype=np.int64)
 """(68,) face-mesh index of each Multi-PIE point (see the module docstring)."""
+
+MESH_EXTRA_POINTS = np.setdiff1d(np.arange(468), MEDIAPIPE_TO_68)
+"""(400,) the face-mesh points that are not among the 68 (surface points over the cheeks,
+forehead and nose; `fit.EstimateIdentity` reads them after the 68)."""
 
 MULTIPIE_68_GROUPS = {
     "jaw": np.arange(0, 17), "brows": np.arange(17, 27), "nose": np.arange(27, 36),
