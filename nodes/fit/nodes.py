@@ -286,11 +286,16 @@ class EstimateAppearance(Node):
             pix = plate.pixels[frame]
             return pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
 
-        if p.mode == "default":  # the default appearance, with the noise of the plate's frame
-            frame = min(max(p.frame - self.frames.start, 0), len(found) - 1) if p.frame >= 0 else \
-                (_near_neutral_frame(landmarks, found) if found.any() else 0)
+        if p.mode == "default":
             value = appearance_json(albedo0, sh0, tuple(bg0), hidden)
-            value["noise"] = estimate_noise(pixels_of(frame)) if p.noise < 0 else float(p.noise)
+            value["noise"] = float(p.noise)
+            if p.noise < 0:  # the plate's noise: in the frame asked for, or the least open mouth's, or the first
+                frame = p.frame - self.frames.start if p.frame >= 0 else \
+                    (_near_neutral_frame(landmarks, found) if found.any() else 0)
+                if not 0 <= frame < len(found):
+                    raise InputError("frame", f"expected a frame of the shot ({self.frames.start}.."
+                                     f"{self.frames.start + len(found) - 1}), found {p.frame}")
+                value["noise"] = estimate_noise(pixels_of(frame))
             return {"appearance": JsonValue(value)}
         if not found.any():
             raise InputError("landmarks", "expected a frame with a face to estimate the appearance from, found none")

@@ -120,3 +120,24 @@ def test_identity_from_the_468_face_mesh_points():
     bad = Landmarks2D(marks["landmarks468"].points[:, :100], marks["landmarks468"].confidence[:, :100])
     with pytest.raises(NodeError, match="landmarks.*468, 2"):
         run_node(EstimateIdentity, params, landmarks=[bad], **where)
+
+
+def test_default_appearance_carries_the_plates_noise_when_asked():
+    pytest.importorskip("tflite")
+    from nodegraph import ImageSequence, NodeError, run_node
+    from nodes.fit import EstimateAppearance
+    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from nodes.landmarks import DetectFaces, FaceLandmarks
+
+    face = load_face_model()
+    cam = Camera.from_fov(256, 256, 30.0)
+    truth = random_face_parameters(face, 2, seed=5, distance_cm=65.0)
+    seq = ImageSequence(render_plates(face, [cam], truth, noise=0.01)[0], colour_space="linear")
+    boxes = run_node(DetectFaces, images=seq)["boxes"]
+    marks = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"]
+    where = dict(images=seq, landmarks=marks, boxes=boxes, camera=cam, model=face)
+    assert run_node(EstimateAppearance, {"mode": "default"}, **where)["appearance"].value["noise"] == 0.0
+    noise = run_node(EstimateAppearance, {"mode": "default", "noise": -1}, **where)["appearance"].value["noise"]
+    assert abs(noise - 0.01) < 0.001
+    with pytest.raises(NodeError, match="'frame': expected a frame of the shot"):
+        run_node(EstimateAppearance, {"mode": "default", "noise": -1, "frame": 7}, **where)
