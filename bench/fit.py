@@ -39,6 +39,12 @@ def main() -> None:
     ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
     ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
     ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
+    ap.add_argument("--photometric", type=float, default=None, help="fit.RigidPose / fit.Expression "
+                    "photometric_weight (0 = landmarks only)")
+    ap.add_argument("--identity-photometric", type=float, default=None, help="fit.EstimateIdentity "
+                    "photometric_weight (0 = landmarks only)")
+    ap.add_argument("--identity-passes", type=int, default=2, help="appearance + identity passes after the "
+                    "first identity (as the graphs: 2)")
     ap.add_argument("--identity-points", type=int, default=468, choices=[68, 468],
                     help="landmarks the identity is estimated from (as graphs/fit_video.json: 468, the 68 then 400 more face-mesh points)")
     args = ap.parse_args()
@@ -57,8 +63,8 @@ def main() -> None:
     times["detection + landmarks"] = (time.perf_counter() - t) / f
     views = dict(landmarks=[marks], boxes=[det["boxes"]], cameras=[cam])
     id_views = dict(views, landmarks=[id_marks])
-    # as graphs/fit_video.json: identity with the default appearance, the appearance of that
-    # identity, the identity again with that appearance
+    # as graphs/fit_video.json: identity with the default appearance, then twice the appearance
+    # of that identity and the identity again with that appearance
     ident_params = {"mode": args.identity, "frames_used": args.identity_frames}
     if args.identity_prior is not None:
         ident_params["identity_prior"] = args.identity_prior
@@ -78,14 +84,27 @@ def main() -> None:
     app = run_node(EstimateAppearance, app_params, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
                    model=first["fitted_model"])
     common = dict(views, appearance=app["appearance"])
-    ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model, **dict(common, landmarks=[id_marks]))
+    if args.identity_photometric is not None:
+        ident_params["photometric_weight"] = args.identity_photometric
+    ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model,
+                     **dict(common, landmarks=[id_marks], images=[seq]))
+    for _ in range(args.identity_passes - 1):  # appearance of the new identity, then the identity again
+        app = run_node(EstimateAppearance, app_params, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
+                       model=ident["fitted_model"])
+        common = dict(views, appearance=app["appearance"])
+        ident = run_node(EstimateIdentity, ident_params, frames=range(f), model=model,
+                         **dict(common, landmarks=[id_marks], images=[seq]))
     times["identity + appearance (once, per shot)"] = time.perf_counter() - t
     fitted = ident["fitted_model"]
     t = time.perf_counter()
-    rigid = run_node(RigidPose, {"rounds": args.rounds}, frames=range(f), model=fitted, **common)
+    fit_params = {"rounds": args.rounds}
+    if args.photometric is not None:
+        fit_params["photometric_weight"] = args.photometric
+    common = dict(common, images=[seq])
+    rigid = run_node(RigidPose, fit_params, frames=range(f), model=fitted, **common)
     times["rigid"] = (time.perf_counter() - t) / f
     t = time.perf_counter()
-    expr = run_node(Expression, {"rounds": args.rounds}, frames=range(f), model=fitted, pose=rigid["pose"], **common)
+    expr = run_node(Expression, fit_params, frames=range(f), model=fitted, pose=rigid["pose"], **common)
     times["expression"] = (time.perf_counter() - t) / f
     print(f"CPU (no GPU), {f} frames of {args.size}x{args.size}:")
     for k, v in times.items():

@@ -42,6 +42,8 @@ POSE_NAMES = [f"r{i}{j}" for i in range(3) for j in range(3)] + ["tx", "ty", "tz
 
 _MIN_PRESENCE = 0.5
 
+PHOTOMETRIC_WEIGHT = 500.0
+
 
 # -- shared helpers --------------------------------------------------------------------------
 def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
@@ -63,10 +65,46 @@ def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], camer
             raise InputError("landmarks", f"camera {c}: expected {frames} frames, found {lm.points.shape[0]}")
 
 
+def _plate_crops(images: list[ImageSequence], box: np.ndarray, seen: np.ndarray, frames: np.ndarray,
+                 device: str) -> Any:
+    """(B, C, S, S, 3) linear crops of the plates at the boxes (B selected frames), as the
+    landmark network's input (`crop_and_resize`, S = 192); black where a view did not see the face."""
+    import torch
+
+    from ..landmarks.network import MESH_SIZE, crop_and_resize
+
+    b, c = box.shape[:2]
+    out = torch.zeros(b, c, MESH_SIZE, MESH_SIZE, 3, device=device)
+    for cam, seq in enumerate(images):
+        lin = seq.to_linear()
+        idx = lin.colour_channels()
+        pix = lin.pixels[frames]
+        pix = pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
+        rows = np.flatnonzero(seen[:, cam])
+        if len(rows):
+            out[rows, cam] = crop_and_resize(torch.as_tensor(np.ascontiguousarray(pix[rows], np.float32),
+                                                             device=device), box[rows, cam], MESH_SIZE)
+    return out
+
+
+def _check_images(images: list[ImageSequence], cameras: list[Camera], frames: int) -> None:
+    if len(images) != len(cameras):
+        raise InputError("images", f"expected one plate per camera ({len(cameras)}), found {len(images)}")
+    for c, (seq, cam) in enumerate(zip(images, cameras)):
+        f, h, w = seq.pixels.shape[:3]
+        if f != frames:
+            raise InputError("images", f"camera {c}: expected {frames} frames, found {f}")
+        if (w, h) != (cam.width, cam.height):
+            raise InputError("images", f"camera {c}: expected {cam.width}x{cam.height} plates (the camera's), "
+                             f"found {w}x{h}")
+
+
 def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera], device: str,
-           select: np.ndarray | None = None, allow_mesh: bool = False) -> Any:
+           select: np.ndarray | None = None, allow_mesh: bool = False,
+           images: list[ImageSequence] | None = None) -> Any:
     """FitViews of the landmarks: targets (F, C, 68, 2), or with `allow_mesh` and 468-point
-    landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`."""
+    landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`. With
+    `images`, the plates' crops too (for the photometric term)."""
     import torch
 
     from ..landmarks.correspondence import MEDIAPIPE_TO_68, MESH_EXTRA_POINTS
@@ -82,16 +120,17 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
     conf = np.stack([lm.confidence.min(1) for lm in landmarks], 1)  # (F, C)
     box = np.stack([b.values for b in boxes], 1).astype(np.float32)
     seen = np.isfinite(pts).all((2, 3)) & np.isfinite(box).all(2) & (conf >= _MIN_PRESENCE)
-    if select is not None:
-        pts, box, seen = pts[select], box[select], seen[select]
+    frames = np.arange(len(pts)) if select is None else np.asarray(select)
+    pts, box, seen = pts[frames], box[frames], seen[frames]
     pts = np.where(seen[..., None, None], pts, 0.0)
     box = np.where(seen[..., None], box, np.array([0.0, 0.0, 1.0, 1.0], np.float32))
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
     dist = np.array([[c.k1, c.k2] for c in cameras])
+    plates = _plate_crops(images, box, seen, frames, device) if images else None
     return FitViews(t(pts), t(box), torch.as_tensor(seen, device=device),
                     t(np.stack([c.world_to_camera for c in cameras])),
                     t([[c.fx, c.fy, c.cx, c.cy] for c in cameras]), t(dist) if np.abs(dist).max() > 0 else None,
-                    t([[c.width, c.height] for c in cameras]))
+                    t([[c.width, c.height] for c in cameras]), plates)
 
 
 def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -142,12 +181,16 @@ class _FitParams(NodeParams):
     backprop_steps: int = Param(0, ge=0, le=200, description="Extra Adam steps on the deep energy "
                                 "backpropagated through the network and the renderer (the paper's literal "
                                 "solver; slow on a CPU).")
+    photometric_weight: float = Param(PHOTOMETRIC_WEIGHT, ge=0, description="w_p of the photometric term "
+                                      "(fit.photometric: the plate at the head's surface points against the "
+                                      "render's colour, robust), 256-crop pixel^2 per (0.01 linear)^2 of mean "
+                                      "residual; used when `images` is connected; 0 = landmarks only.")
     batch: int = Param(8, ge=1, description="Frames solved together.", affects_output=False)
 
 
 def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: list[ParamSequence],
              cameras: list[Camera], model: FaceModel, appearance: JsonValue | None,
-             start: np.ndarray | None) -> dict[str, Any]:
+             start: np.ndarray | None, images: list[ImageSequence] | None = None) -> dict[str, Any]:
     import torch
 
     from ..landmarks.network import load_face_mesh
@@ -159,6 +202,9 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     fm = _fit_model(model, appearance, dev)
     views = _views(landmarks, boxes, cameras, dev)
     frames = views.seen.shape[0]
+    photo = bool(images) and p.photometric_weight > 0
+    if images:
+        _check_images(images, cameras, frames)
     k = len(model.expression_names)
     found = views.seen.any(1).cpu().numpy()
     pose = np.full((frames, 12), np.nan, np.float32)
@@ -170,7 +216,7 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     idx = np.flatnonzero(found)
     for n0 in range(0, len(idx), p.batch):
         sel = idx[n0:n0 + p.batch]
-        sub = _views(landmarks, boxes, cameras, dev, select=sel)
+        sub = _views(landmarks, boxes, cameras, dev, select=sel, images=images if photo else None)
         if start is None:
             state = initial_pose(fm, sub)
             stages, first_on_landmarks = RIGID_STAGES, True
@@ -183,7 +229,7 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
         state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
                                  first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
                                  edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
-                                 supersample=p.supersample)
+                                 supersample=p.supersample, photometric_weight=p.photometric_weight if photo else 0.0)
         if p.backprop_steps:
             state, e = refine_backprop(fm, sub, state, stages[-1], network, steps=p.backprop_steps,
                                        prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
@@ -331,7 +377,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 3
+    version = 4
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -341,11 +387,15 @@ class EstimateIdentity(Node):
         path: str = Param("", input_file=True, description="mode 'file': NPZ with 'identity' [I] or JSON "
                           "{'identity': [...]}.")
         frames_used: int = Param(3, ge=1, le=50, description="Detected frames used (spread over the shot).")
-        identity_prior: float = Param(20.0, gt=0, description="lambda_id of |identity|^2 (components are "
+        identity_prior: float = Param(100.0, gt=0, description="lambda_id of |identity|^2 (components are "
                                       "N(0, 1)), 256-crop pixel^2 per unit^2.")
-        iterations: int = Param(40, ge=1, le=500, description="L-BFGS iterations per round.")
+        iterations: int = Param(15, ge=1, le=500, description="Levenberg-Marquardt iterations per round (at "
+                                "most; every frame's unknowns and the identity together).")
         mesh_weight: float = Param(0.25, ge=0, description="Weight of each of the 400 face-mesh points past the "
                                    "68 (landmarks with 468 points only; the 68 weigh 1, eyelids less).")
+        photometric_weight: float = Param(PHOTOMETRIC_WEIGHT, ge=0, description="w_p of the photometric term "
+                                          "(as fit.RigidPose's), used when `images` and `appearance` are "
+                                          "connected: the frames' poses then constrain the shape as views do.")
 
     landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) Multi-PIE or (F, 468, 2) face-mesh plate landmarks "
                    "(the identity then also fits the 400 other face-mesh points: cheeks, forehead, nose), one per "
@@ -354,6 +404,8 @@ class EstimateIdentity(Node):
     cameras = In(Camera, many=True, doc="The cameras, in the same order.")
     model = In(FaceModel, doc="The face model (mean identity).")
     appearance = In(JsonValue, optional=True, doc="From fit.EstimateAppearance (default appearance if absent).")
+    images = In(ImageSequence, many=True, optional=True, doc="The plates, one per camera in the same order, for "
+                "the photometric term (with `appearance` only).")
     fitted_model = Out(FaceModel, doc="The model with the identity added to its neutral.")
     identity = Out(JsonValue, doc="{'identity': [I floats]}.")
 
@@ -376,7 +428,8 @@ class EstimateIdentity(Node):
         return ident
 
     def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
-            model: FaceModel, appearance: JsonValue | None = None) -> dict[str, Any]:
+            model: FaceModel, appearance: JsonValue | None = None,
+            images: list[ImageSequence] | None = None) -> dict[str, Any]:
         p = self.params
         count = model.identity_deltas.shape[0]
         if p.mode == "mean":
@@ -395,14 +448,19 @@ class EstimateIdentity(Node):
                 raise InputError("landmarks", "expected frames with a face to estimate the identity from, found none")
             pick = found[np.unique(np.linspace(0, len(found) - 1, min(p.frames_used, len(found))).round().astype(int))]
             fm = _fit_model(model, appearance, self.device)
-            sub = _views(landmarks, boxes, cameras, self.device, select=pick, allow_mesh=True)
+            photo = bool(images) and appearance is not None and p.photometric_weight > 0
+            if images:
+                _check_images(images, cameras, views.seen.shape[0])
+            sub = _views(landmarks, boxes, cameras, self.device, select=pick, allow_mesh=True,
+                         images=images if photo else None)
             mesh = sub.target.shape[2] > 68
             sub68 = dataclasses.replace(sub, target=sub.target[:, :, :68])
             net = load_face_mesh(self.device)
             state, _, _ = fit_stages(fm, sub68, initial_pose(fm, sub68), RIGID_STAGES, net, outer=1, iterations=20)
             ident, _ = solve_identity(fm, model.identity_deltas, sub, state, net, identity_prior=p.identity_prior,
                                       iterations=p.iterations, extra_points=MESH_EXTRA_POINTS if mesh else None,
-                                      extra_weight=p.mesh_weight)
+                                      extra_weight=p.mesh_weight,
+                                      photometric_weight=p.photometric_weight if photo else 0.0)
         fitted = FaceModel(neutral=model.evaluate(np.zeros(len(model.expression_names)), ident),
                            faces=model.faces, expression_deltas=model.expression_deltas,
                            expression_names=list(model.expression_names), identity_deltas=model.identity_deltas,
@@ -414,7 +472,7 @@ class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 3
+    version = 4
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _FitParams
@@ -424,13 +482,16 @@ class RigidPose(Node):
     cameras = In(Camera, many=True, doc="The calibrated cameras, in the same order.")
     model = In(FaceModel, doc="The face model (identity applied).")
     appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
+    images = In(ImageSequence, many=True, optional=True, doc="The plates, one per camera in the same order, for "
+                "the photometric term (landmarks only when absent).")
     pose = Out(ParamSequence, doc="r00..r22 (model to world), tx ty tz cm; NaN where failed.")
     energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
     failed = Out(ParamSequence, doc="failed: 1 where no camera found the face.")
 
     def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
-            model: FaceModel, appearance: JsonValue | None = None) -> dict[str, ParamSequence]:
-        out = _run_fit(self, "rigid", landmarks, boxes, cameras, model, appearance, None)
+            model: FaceModel, appearance: JsonValue | None = None,
+            images: list[ImageSequence] | None = None) -> dict[str, ParamSequence]:
+        out = _run_fit(self, "rigid", landmarks, boxes, cameras, model, appearance, None, images)
         return {"pose": ParamSequence(out["pose"], list(POSE_NAMES)),
                 "energy": ParamSequence(out["energy"][:, None], ["energy"]),
                 "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
@@ -448,7 +509,7 @@ class Expression(Node):
     """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
 
     type_name = "fit.Expression"
-    version = 3
+    version = 4
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _ExpressionParams
@@ -460,6 +521,8 @@ class Expression(Node):
     appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
     pose = In(ParamSequence, doc="From fit.RigidPose (12 columns), or a fit (12 + one per expression weight, "
               "the weights then start the solve), e.g. temporally smoothed.")
+    images = In(ImageSequence, many=True, optional=True, doc="The plates, one per camera in the same order, for "
+                "the photometric term (landmarks only when absent).")
     keep = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0: frames passed through unchanged from "
               "`pose` (e.g. frames filled by flow whose plates gave no usable landmarks).")
     fitted = Out(ParamSequence, doc="r00..r22, tx ty tz (cm), then one column per expression weight.")
@@ -470,7 +533,7 @@ class Expression(Node):
 
     def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
             model: FaceModel, pose: ParamSequence, appearance: JsonValue | None = None,
-            keep: ParamSequence | None = None) -> dict[str, Any]:
+            keep: ParamSequence | None = None, images: list[ImageSequence] | None = None) -> dict[str, Any]:
         k = len(model.expression_names)
         start = np.asarray(pose.values, np.float32)
         if start.shape[1] not in (12, 12 + k):
@@ -480,7 +543,7 @@ class Expression(Node):
             raise InputError("keep", f"expected ({len(start)}, 1+) flags, found {keep.values.shape}")
         passed = keep.values[:, 0] > 0.5 if keep is not None else np.zeros(len(start), bool)
         out = _run_fit(self, "expression", landmarks, boxes, cameras, model, appearance,
-                       np.where(passed[:, None], np.nan, start))
+                       np.where(passed[:, None], np.nan, start), images)
         finite = np.isfinite(start).all(1) if start.shape[1] == 12 + k else np.zeros(len(start), bool)
         through = finite & (passed | (out["failed"] & self.params.hold_pose))
         if through.any():

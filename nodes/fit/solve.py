@@ -28,6 +28,7 @@ Torch is imported at the top: import this module from node `run()` methods only.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
@@ -39,6 +40,7 @@ from torch import Tensor
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
                      project_views)
+from .photometric import PhotoSamples, PhotoTerm, photometric_samples
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, crop_to_image, landmark_anchors,
                     network_points, render_crops)
 
@@ -163,14 +165,15 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
     """A stage's energy as a sum of squares: x (B, 6 + S) -> residuals (B, M).
 
     x = [omega (3), t (3) cm, the S active weights]; `R = exp([omega]) rot0`. The residuals are,
-    in order: data (C*68*2), edges (C*E*2, if mu > 0), prior (S), bound penalty (S), rigid
+    in order: data (C*L*2), edges (C*E*2, if mu > 0), prior (S), bound penalty (S), rigid
     prior (12, if any), so that `sum r^2` is `landmark_energy` + the prior + the bound
-    penalty + the rigid prior of `solve_stage`.
+    penalty + the rigid prior of `solve_stage`. `w_lm` is (L,) or (B, C, L).
     """
     a, b = EDGES_68[:, 0], EDGES_68[:, 1]
     scale = views.scale
-    sw = w_lm.clamp_min(0).sqrt()
-    ew = ((w_lm[a] > 0) & (w_lm[b] > 0)).to(w_lm.dtype) * float(edge_weight) ** 0.5
+    w3 = w_lm if w_lm.ndim == 3 else w_lm.expand(*views.target.shape[:3])  # (B, C, L)
+    sw = w3.clamp_min(0).sqrt()[..., None]
+    ew = ((w3[..., a] > 0) & (w3[..., b] > 0)).to(w_lm.dtype)[..., None] * float(edge_weight) ** 0.5
     n_w = len(shapes)
     use_rigid_prior = rigid_prior is not None and rigid_prior_weight > 0
 
@@ -182,9 +185,9 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
         pts = posed_anchor_points(neutral, deltas, weights, rot, trans)
         pred = project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
         r = (views.target - pred) * scale[..., None, None]  # (B, C, 68, 2)
-        parts = [(r * sw[:, None]).flatten(1)]
+        parts = [(r * sw).flatten(1)]
         if edge_weight > 0:
-            parts.append(((r[:, :, b] - r[:, :, a]) * ew[:, None]).flatten(1))
+            parts.append(((r[:, :, b] - r[:, :, a]) * ew).flatten(1))
         if n_w:
             parts.append(active * float(prior) ** 0.5)
             parts.append(((-active).clamp_min(0) + (active - 1).clamp_min(0)) * BOUND_PENALTY ** 0.5)
@@ -199,7 +202,8 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
 
 def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors, state: PoseState, *,
                 prior: float, edge_weight: float, eyelid_weight: float, iterations: int,
-                rigid_prior: PoseState | None = None, rigid_prior_weight: float = 0.0) -> tuple[PoseState, Tensor]:
+                rigid_prior: PoseState | None = None, rigid_prior_weight: float = 0.0,
+                photo: PhotoSamples | None = None, photo_weight: float = 0.0) -> tuple[PoseState, Tensor]:
     """Minimize one stage's energy over its unknowns (all frames at once; frames are independent).
 
     The energy is a sum of squares (`_stage_residuals`), minimized per frame by
@@ -220,10 +224,18 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
             lowers its energy by less than 1e-4 relative.
         rigid_prior: pose the rigid unknowns are pulled toward in expression stages, with
             `rigid_prior_weight` (per radian^2 and cm^2).
+        photo: photometric samples (`nodes.fit.photometric`) of this round, or None;
+            photo_weight: their w_p.
     Returns:
-        the new state and (B,) the energy at it (data + edges + prior).
+        the new state and (B,) the energy at it (data + edges + photometric + prior).
     """
     neutral, deltas = _anchored(model, anchors)
+    b = state.rot.shape[0]
+    use_photo = photo is not None and photo_weight > 0
+    if use_photo:
+        p_neutral, p_deltas = photo.neutral, photo.deltas
+        shape_list = list(stage.shapes)
+        p_basis = p_deltas[:, :, :, shape_list].transpose(-1, -2)  # (B, C, N, 3, S)
     dev, dt = neutral.device, neutral.dtype
     b = state.rot.shape[0]
     w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight, jaw=stage.jaw_weight)
@@ -241,12 +253,35 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     def unknowns(trans: Tensor, weights: Tensor) -> Tensor:  # x = [omega = 0, t, active weights]
         return torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), trans, weights[:, shapes]], 1)
 
-    def linearize(rot: Tensor, trans: Tensor, weights: Tensor) -> tuple[Callable[[Tensor], Tensor], Tensor]:
+    def linearize(rot: Tensor, trans: Tensor,
+                  weights: Tensor) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor], Tensor]:
+        """The residual function of the free unknowns about the current state, its Jacobian, and x."""
         fn = _stage_residuals(neutral, deltas, views, anchors, rot, weights, shapes, w_lm, prior=prior,
                               edge_weight=edge_weight, rigid_prior=rigid_prior,
                               rigid_prior_weight=rigid_prior_weight)
         x0 = unknowns(trans, weights)
-        return (lambda xf: fn(full(xf, x0))), x0[:, free_idx]
+        term = None
+        if use_photo:
+            inactive = weights.clone()
+            inactive[:, shape_list] = 0.0
+            term = PhotoTerm(photo, views, photo_weight, p_neutral + torch.einsum("bk,bclkd->bcld", inactive, p_deltas),
+                             p_basis)
+
+        def residuals(xf: Tensor) -> Tensor:
+            xa = full(xf, x0)
+            r = fn(xa)
+            return torch.cat([r, term.residuals(xa[:, :3], rot, xa[:, 3:6], xa[:, 6:])], 1) if term else r
+
+        def jacobian(xf: Tensor) -> Tensor:
+            with _FORWARD_AD_LOCK:  # torch's forward-AD levels are process-wide: one jacfwd at a time
+                jac = torch.func.jacfwd(lambda d: fn(full(xf + d[None], x0)))(torch.zeros(n_p, dtype=dt, device=dev))
+                if term is None:
+                    return jac
+                xa = full(xf, x0)
+                _, jac_p = term.jacobian(rot, xa[:, 3:6], xa[:, 6:])
+            return torch.cat([jac, jac_p[:, :, free_idx]], 1)
+
+        return residuals, jacobian, x0[:, free_idx]
 
     def state_at(rot: Tensor, x: Tensor) -> PoseState:
         r = axis_angle_to_rotmat(x[:, :3]) @ rot
@@ -254,14 +289,14 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         return PoseState(r, x[:, 3:6], w)
 
     with torch.no_grad():
-        fn, x = linearize(rot, trans, weights)
+        fn, jac_fn, x = linearize(rot, trans, weights)
+        m_lm = fn(x).shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
         r = fn(x)
         cost = (r * r).sum(1)
         lam = torch.full((b,), 1e-3, dtype=dt, device=dev)
         running = torch.ones(b, dtype=torch.bool, device=dev)
         for _ in range(iterations if n_p else 0):
-            with _FORWARD_AD_LOCK:  # torch's forward-AD levels are process-wide: one jacfwd at a time
-                jac = torch.func.jacfwd(lambda d: fn(x + d[None]))(torch.zeros(n_p, dtype=dt, device=dev))  # (B, M, P)
+            jac = jac_fn(x)  # (B, M, P)
             jtj = jac.transpose(1, 2) @ jac
             jtr = (jac.transpose(1, 2) @ r[..., None])[..., 0]
             diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
@@ -286,22 +321,25 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
             cost = torch.where(better, cost_new, cost)
             if not running.any():
                 break
-            fn, x = linearize(rot, trans, weights)
+            fn, jac_fn, x = linearize(rot, trans, weights)
         drop = len(stage.shapes) + (12 if rigid_prior is not None and rigid_prior_weight > 0 else 0)
-        kept = r[:, :r.shape[1] - drop]  # data + edges + prior (not the bound and rigid-prior terms)
+        kept = torch.cat([r[:, :m_lm - drop], r[:, m_lm:]], 1)  # data + edges + prior + photometric
         e = (kept * kept).sum(1)
     return PoseState(rot, trans, weights.clamp(0.0, 1.0)), e
 
 
 def _render_anchors(model: FitModel, views: FitViews, state: PoseState, network: torch.nn.Module,
-                    fallback: Anchors, supersample: int,
-                    indices: np.ndarray = MEDIAPIPE_TO_68) -> tuple[Anchors, Tensor]:
+                    fallback: Anchors, supersample: int, indices: np.ndarray = MEDIAPIPE_TO_68,
+                    photometric: dict | None = None) -> tuple[Anchors, Tensor, PhotoSamples | None]:
     """Render the current estimate, read it with the network, anchor its points.
 
     Args:
         indices: (L,) the face-mesh points anchored (`network_points`); `fallback` has L points.
+        photometric: keyword arguments of `photometric_samples` to take samples from the render
+            too, or None.
     Returns:
-        anchors, and (B, C, L, 2) the network's render points, image pixels.
+        anchors, (B, C, L, 2) the network's render points, image pixels, and the photometric
+        samples (None without `photometric`).
     """
     size = int(network.input_size)
     with torch.no_grad():
@@ -309,14 +347,22 @@ def _render_anchors(model: FitModel, views: FitViews, state: PoseState, network:
         image, triangle, pix = render_crops(model, views, verts, size=size, supersample=supersample)
         points, presence = network_points(image, network, indices)
     anchors = anchors_from_render(model, views, triangle, pix, points, presence, fallback)
+    samples = None
+    if photometric is not None:
+        with torch.no_grad():
+            if model.noise > 0:  # the samples' colours come from the noise-free render
+                image, _, _ = render_crops(dataclasses.replace(model, noise=0.0), views, verts, size=size,
+                                           supersample=supersample)
+            samples = photometric_samples(model, views, image, triangle, pix, anchors.rendered, **photometric)
     b, c = views.seen.shape
-    return anchors, crop_to_image(points.reshape(b, c, len(indices), 2), views.boxes, size)
+    return anchors, crop_to_image(points.reshape(b, c, len(indices), 2), views.boxes, size), samples
 
 
 def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple[Stage, ...],
                network: torch.nn.Module, *, outer: int = 2, first_outer_on_landmarks: bool = True,
                prior: float = 100.0, edge_weight: float = 1.0, eyelid_weight: float = 0.2,
                iterations: int = 30, supersample: int = 2, rigid_prior_weight: float = 0.0,
+               photometric_weight: float = 0.0, photometric: dict | None = None,
                progress: Callable[[float, str], None] | None = None) -> tuple[PoseState, Tensor, list[dict]]:
     """Run the stages `outer` times, re-rendering and re-anchoring before each round.
 
@@ -331,6 +377,9 @@ def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple
         prior, edge_weight, eyelid_weight, iterations: see `solve_stage`.
         supersample: of the renders.
         rigid_prior_weight: pull of the rigid pose toward `state`'s in expression stages.
+        photometric_weight: w_p of the photometric term (`nodes.fit.photometric`) in the rounds
+            anchored on a render; 0 = off. Needs `views.plates`.
+        photometric: keyword arguments of `photometric_samples` (stride, sigma, ...).
     Returns:
         the final state, (B,) energy of the final deep energy (data + edges with all landmarks,
         measured on a last render, in 256-crop pixel^2), and a history of dicts
@@ -340,19 +389,26 @@ def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple
     start = state
     fallback = landmark_anchors(model, b, c)
     history: list[dict] = []
+    use_photo = photometric_weight > 0
+    if use_photo and views.plates is None:
+        raise ValueError("views.plates: expected the plate's crops for the photometric term, found None")
+    photo_args = dict(photometric or {}) if use_photo else None
     for r in range(outer):
+        samples = None
         if r == 0 and first_outer_on_landmarks:
             anchors = fallback
         else:
-            anchors, _ = _render_anchors(model, views, state, network, fallback, supersample)
+            anchors, _, samples = _render_anchors(model, views, state, network, fallback, supersample,
+                                                  photometric=photo_args)
         for stage in stages:
             state, e = solve_stage(stage, model, views, anchors, state, prior=prior, edge_weight=edge_weight,
                                    eyelid_weight=eyelid_weight, iterations=iterations, rigid_prior=start,
-                                   rigid_prior_weight=rigid_prior_weight)
+                                   rigid_prior_weight=rigid_prior_weight, photo=samples,
+                                   photo_weight=photometric_weight)
             history.append({"round": r, "stage": stage.name, "energy": float(e.mean())})
         if progress is not None:
             progress((r + 1) / (outer + 1), f"round {r + 1}/{outer}")
-    _, rendered = _render_anchors(model, views, state, network, fallback, supersample)
+    _, rendered, _ = _render_anchors(model, views, state, network, fallback, supersample)
     w_all = torch.as_tensor(landmark_weights("all", eyelid=eyelid_weight), dtype=rendered.dtype,
                             device=rendered.device)
     energy = landmark_energy(rendered, views.target, views.scale, w_all, edge_weight=edge_weight)

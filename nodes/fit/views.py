@@ -83,6 +83,8 @@ class FitViews:
         seen: (B, C) bool, the face was found in that view.
         world_to_camera: (C, 4, 4); intrinsics: (C, 4) fx fy cx cy; distortion: (C, 2) or None.
         image_size: (C, 2) width, height of each camera's plate, pixels.
+        plates: (B, C, S, S, 3) the plate's crops at the boxes (`crop_and_resize`, linear), for
+            the photometric term (`nodes.fit.photometric`); None without it.
     """
 
     target: Tensor
@@ -92,6 +94,7 @@ class FitViews:
     intrinsics: Tensor
     distortion: Tensor | None
     image_size: Tensor
+    plates: Tensor | None = None
 
     @property
     def scale(self) -> Tensor:

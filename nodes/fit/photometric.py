@@ -1,0 +1,248 @@
+"""Photometric term of the fit: the plate sampled at surface points of the head must show
+the colour the render gives them.
+
+After a render of the current estimate (`nodes.fit.views.render_crops`), every `stride`-th
+covered pixel of each view's crop becomes a *sample*: the surface point under it (triangle +
+barycentrics, like a landmark anchor) and the render's colour there. While the pose and the
+shapes move, the sample's surface point moves with them and the plate's crop is read where
+it projects (bilinearly, both images blurred by the same Gaussian):
+
+    E_p = w_p * (1 / N_c) sum_i rho_i |P(pi_c(x_i(theta))) - c_i|^2 / sigma_0^2
+
+with `P` the plate's blurred crop, `c_i` the render's blurred colour at sample i, `N_c` the
+view's samples, `rho_i` a Huber weight (fixed per round from the residual at its start, so
+that hair, teeth, occluders and a wrong background count little) and `sigma_0 = 0.01` linear
+units. `w_p` is in the landmark energy's units (256-crop pixel^2): with `w_p = 68` a view's
+photometric residual of 0.01 everywhere weighs as much as a 1 px error on each of the 68
+landmarks. The landmarks find the face from far; this term then holds the surface where the
+plate shows it, which the landmarks (a network's reading, a few pixels noisy, with an
+identity that is only estimated) pin less well, most of all in pitch.
+
+Torch is imported at the top: import this module from node `run()` methods only.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .energy import axis_angle_to_rotmat, project_views
+from .views import FitModel, FitViews, _barycentrics, image_to_crop
+
+__all__ = ["PHOTO_UNIT", "PhotoSamples", "gaussian_blur", "sample_bilinear", "photometric_samples",
+           "photometric_residuals", "photometric_point_jacobian", "PhotoTerm"]
+
+PHOTO_UNIT = 0.01
+"""sigma_0: photometric residuals are measured in units of 0.01 (linear colour)."""
+
+
+class PhotoSamples(NamedTuple):
+    """Surface samples of one round (see the module docstring).
+
+    Attributes:
+        vertices: (B, C, N, 3) int64 triangle corners; bary: (B, C, N, 3) barycentrics.
+        colour: (B, C, N, 3) the render's blurred colour at each sample, linear.
+        weight: (B, C, N) rho_i / N_c (0 for padding and for views without a render).
+        plates: (B * C, S, S, 3) the plate's crops, blurred as the render was.
+        size: S, the crops' side (render pixels).
+        neutral: (B, C, N, 3) the model's neutral at the samples, cm; deltas: (B, C, N, K, 3)
+            its expression shapes there.
+    """
+
+    vertices: Tensor
+    bary: Tensor
+    colour: Tensor
+    weight: Tensor
+    plates: Tensor
+    size: int
+    neutral: Tensor
+    deltas: Tensor
+
+
+def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
+    """(N, H, W, 3) -> the same, blurred by a separable Gaussian of `sigma` pixels (edges replicated)."""
+    if sigma <= 0:
+        return images
+    radius = max(1, int(np.ceil(2.5 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    n, h, w, c = images.shape
+    t = images.permute(0, 3, 1, 2).reshape(n * c, 1, h, w)
+    t = torch.nn.functional.pad(t, (radius, radius, radius, radius), mode="replicate")
+    t = torch.nn.functional.conv2d(t, g.reshape(1, 1, 1, -1))
+    t = torch.nn.functional.conv2d(t, g.reshape(1, 1, -1, 1))
+    return t.reshape(n, c, h, w).permute(0, 2, 3, 1)
+
+
+def sample_bilinear(images: Tensor, xy: Tensor) -> Tensor:
+    """Bilinear samples of images at pixel coordinates (centres at integers), differentiable in xy.
+
+    Written with gathers (not `grid_sample`) so that forward-mode autodiff goes through it.
+
+    Args:
+        images: (N, H, W, C); xy: (N, L, 2) x, y pixel coordinates (clamped into the image).
+    Returns:
+        (N, L, C).
+    """
+    n, h, w, c = images.shape
+    x = xy[..., 0].clamp(0.0, w - 1.0)
+    y = xy[..., 1].clamp(0.0, h - 1.0)
+    x0 = torch.floor(x).clamp(0, w - 2) if w > 1 else torch.zeros_like(x)
+    y0 = torch.floor(y).clamp(0, h - 2) if h > 1 else torch.zeros_like(y)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    xi, yi = x0.long(), y0.long()
+    flat = images.reshape(n, h * w, c)
+    dx, dy = int(w > 1), int(h > 1)
+
+    def at(yy: Tensor, xx: Tensor) -> Tensor:
+        return torch.gather(flat, 1, (yy * w + xx)[..., None].expand(*xx.shape, c))
+
+    top = at(yi, xi) * (1 - fx) + at(yi, xi + dx) * fx
+    bottom = at(yi + dy, xi) * (1 - fx) + at(yi + dy, xi + dx) * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def photometric_samples(model: FitModel, views: FitViews, image: Tensor, triangle: Tensor, pix: Tensor,
+                        rendered: Tensor, *, stride: int = 4, sigma: float = 1.0, erode: int = 1,
+                        huber: float = 3.0, state_points: Tensor | None = None) -> PhotoSamples:
+    """The samples of one round, from a render of the current estimate.
+
+    Args:
+        model, views: as in `render_crops`; `views.plates` holds the plate's crops.
+        image: (B * C, S, S, 3) the render's crops (linear, noise-free); triangle: (B * C, S, S)
+            visible triangle (-1 none); pix: (B * C, V, 2) projected vertices, crop pixels.
+        rendered: (B, C) bool, views whose render is usable (the face seen, the network found it).
+        stride: every stride-th crop pixel along x and y is a sample candidate.
+        sigma: Gaussian blur of render and plate, crop pixels (widens the basin; noise averages out).
+        erode: covered pixels within this many pixels of the silhouette are left out (their
+            blurred colour mixes in the background).
+        huber: the Huber weight's threshold, in robust standard deviations (1.4826 x the
+            median absolute residual of the view at the round's start).
+    Returns:
+        PhotoSamples.
+    """
+    if views.plates is None:
+        raise ValueError("views.plates: expected the plate's crops for the photometric term, found None")
+    b, c = views.boxes.shape[:2]
+    n, s = triangle.shape[:2]
+    dev, dt = image.device, image.dtype
+    covered = (triangle >= 0).to(dt)[:, None]
+    if erode > 0:  # a pixel counts when every pixel within `erode` of it is covered
+        covered = -torch.nn.functional.max_pool2d(-covered, 2 * erode + 1, stride=1, padding=erode)
+    grid = torch.zeros(s, s, dtype=torch.bool, device=dev)
+    grid[stride // 2::stride, stride // 2::stride] = True
+    keep = (covered[:, 0] > 0.5) & grid & rendered.reshape(n)[:, None, None]
+    count = keep.flatten(1).sum(1)
+    m = max(int(count.max().item()), 1)
+    order = torch.argsort(keep.flatten(1).to(torch.int8), dim=1, descending=True, stable=True)[:, :m]  # (N, M)
+    valid = torch.arange(m, device=dev)[None] < count[:, None]
+    tri = triangle.flatten(1).gather(1, order).clamp_min(0)
+    faces = torch.as_tensor(model.faces, device=dev)
+    corner_ids = faces[tri]  # (N, M, 3)
+    rows = torch.arange(n, device=dev)[:, None, None]
+    corners = pix.detach()[rows, corner_ids]  # (N, M, 3, 2)
+    centres = torch.stack([order % s, order // s], -1).to(dt)
+    bary = _barycentrics(corners, centres)
+    blurred = gaussian_blur(image.detach(), sigma)
+    colour = blurred.reshape(n, s * s, 3).gather(1, order[..., None].expand(n, m, 3))
+    plates = gaussian_blur(views.plates.reshape(n, s, s, 3).to(dt), sigma)
+    # Huber weights from the residual at the start of the round (the anchors' own projection)
+    resid = (sample_bilinear(plates, (bary[..., None] * corners).sum(-2)) - colour).norm(dim=-1)
+    med = torch.stack([resid[i][valid[i]].median() if valid[i].any() else resid.new_tensor(1.0)
+                       for i in range(n)]) if n else resid.new_zeros(0)
+    thresh = (huber * 1.4826 * med).clamp_min(1e-3)[:, None]
+    rho = torch.where(resid <= thresh, torch.ones_like(resid), thresh / resid.clamp_min(1e-9))
+    weight = torch.where(valid, rho, torch.zeros_like(rho)) / count.clamp_min(1)[:, None].to(dt)
+    shape = (b, c, m)
+    vertices, bary = corner_ids.reshape(*shape, 3), bary.reshape(*shape, 3)
+    neutral = (model.neutral[vertices] * bary[..., None]).sum(-2)
+    deltas = (model.deltas[:, vertices] * bary[None, ..., None]).sum(-2).permute(1, 2, 3, 0, 4)
+    return PhotoSamples(vertices, bary, colour.reshape(*shape, 3), weight.reshape(shape), plates, s, neutral, deltas)
+
+
+def photometric_residuals(samples: PhotoSamples, points: Tensor, views: FitViews, weight: float) -> Tensor:
+    """(B, C*N*3) residuals whose squares sum to E_p of the module docstring.
+
+    Args:
+        samples: from `photometric_samples`.
+        points: (B, C, N, 2) the samples' projections at the current unknowns, image pixels.
+        views: the boxes; weight: w_p.
+    """
+    b, c, m = samples.weight.shape
+    crop = image_to_crop(points, views.boxes, samples.size).reshape(b * c, m, 2)
+    seen = sample_bilinear(samples.plates, crop).reshape(b, c, m, 3)
+    r = (seen - samples.colour) / PHOTO_UNIT
+    return (r * (samples.weight * float(weight))[..., None].sqrt()).flatten(1)
+
+
+def photometric_point_jacobian(samples: PhotoSamples, world: Tensor, views: FitViews, weight: float,
+                               project: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor]:
+    """Residuals and their derivatives with respect to each sample's world point.
+
+    A sample's residual depends on its own point only, so forward-mode autodiff along one
+    displacement shared by all points (3 tangents) gives every sample's 3 x 3 Jacobian; a
+    caller chains it with the points' derivatives in its unknowns (a matrix product per
+    sample), instead of pushing all unknowns through the sampling.
+
+    Args:
+        samples: from `photometric_samples`; world: (B, C, N, 3) the samples' world points, cm.
+        views, weight: as in `photometric_residuals`.
+        project: (B, C, N, 3) world points -> (B, C, N, 2) image pixels.
+    Returns:
+        residuals (B, C, N, 3) and their Jacobian (B, C, N, 3, 3) (colour channel, x y z).
+    """
+    b, c, m = samples.weight.shape
+
+    def res(d: Tensor) -> Tensor:
+        return photometric_residuals(samples, project(world + d), views, weight).reshape(b, c, m, 3)
+
+    zero = torch.zeros(3, dtype=world.dtype, device=world.device)
+    return res(zero), torch.func.jacfwd(res)(zero)
+
+
+class PhotoTerm:
+    """A stage's photometric residuals as a function of the pose and the active weights, with
+    their Jacobian chained by hand (`photometric_point_jacobian`).
+
+    The samples' local points are `local0 + basis @ active` (model frame, cm), their world
+    points `R local + t` with `R = exp([omega]) rot0`.
+
+    Args:
+        samples, views, weight: as in `photometric_residuals`.
+        local0: (B, C, N, 3) the local points with the active weights at 0.
+        basis: (B, C, N, 3, S) the active shapes (or any linear unknowns) at the samples.
+    """
+
+    def __init__(self, samples: PhotoSamples, views: FitViews, weight: float, local0: Tensor, basis: Tensor):
+        self.samples, self.views, self.weight = samples, views, float(weight)
+        self.local0, self.basis = local0, basis
+
+    def _project(self, world: Tensor) -> Tensor:
+        v = self.views
+        return project_views(world, v.world_to_camera, v.intrinsics, v.distortion)
+
+    def _local(self, active: Tensor) -> Tensor:
+        return self.local0 + torch.einsum("bcnds,bs->bcnd", self.basis, active) if active.shape[1] else self.local0
+
+    def residuals(self, omega: Tensor, rot0: Tensor, trans: Tensor, active: Tensor) -> Tensor:
+        """(B, C*N*3) residuals at (B, 3) omega about (B, 3, 3) rot0, (B, 3) trans cm, (B, S) active."""
+        rot = axis_angle_to_rotmat(omega) @ rot0
+        world = self._local(active) @ rot[:, None].transpose(-1, -2) + trans[:, None, None, :]
+        return photometric_residuals(self.samples, self._project(world), self.views, self.weight)
+
+    def jacobian(self, rot: Tensor, trans: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
+        """Residuals (B, M) and Jacobian (B, M, 6 + S) in (omega, t, active) at omega = 0."""
+        q = self._local(active) @ rot[:, None].transpose(-1, -2)  # (B, C, N, 3) rotated, not translated
+        r, jp = photometric_point_jacobian(self.samples, q + trans[:, None, None, :], self.views, self.weight,
+                                           self._project)
+        x, y, z = q.unbind(-1)
+        zero = torch.zeros_like(x)
+        neg_skew = torch.stack([zero, z, -y, -z, zero, x, y, -x, zero], -1).reshape(*q.shape, 3)  # -[q]x
+        dshape = torch.einsum("bij,bcnjs->bcnis", rot, self.basis)
+        jac = torch.cat([jp @ neg_skew, jp, jp @ dshape], -1)
+        b = r.shape[0]
+        return r.reshape(b, -1), jac.reshape(b, -1, jac.shape[-1])
