@@ -43,6 +43,8 @@ POSE_NAMES = [f"r{i}{j}" for i in range(3) for j in range(3)] + ["tx", "ty", "tz
 _MIN_PRESENCE = 0.5
 
 PHOTOMETRIC_WEIGHT = 500.0
+"""Default w_p of the photometric term (`nodes.fit.photometric`). bench/fit.py, seed 0, 16 frames, the
+true identity: median rotation 1.73 deg with landmarks only, 1.21 with w_p 68, 0.77 with 500."""
 
 
 # -- shared helpers --------------------------------------------------------------------------
