@@ -29,14 +29,9 @@ from .energy import axis_angle_to_rotmat, landmark_weights
 from .photometric import PhotoSamples, PhotoTerm
 from .solve import (_FORWARD_AD_LOCK, PoseState, _anchored, _render_anchors, _stage_residuals, jaw_shapes,
                     mouth_shapes)
-from .views import Anchors, FitModel, FitViews, landmark_anchors
+from .views import Anchors, FitModel, FitViews, at_anchors, landmark_anchors
 
 __all__ = ["solve_identity"]
-
-
-def _anchored_identity(identity_deltas: Tensor, vertices: Tensor, bary: Tensor) -> Tensor:
-    """(I, V, 3) identity components at (B, C, L) anchors -> (B, C, L, I, 3)."""
-    return (identity_deltas[:, vertices] * bary[None, ..., None]).sum(-2).permute(1, 2, 3, 0, 4)
 
 
 def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, anchors: Anchors, state: PoseState,
@@ -49,22 +44,18 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
         the frames' states and the identity (I,).
     """
     neutral, deltas = _anchored(model, anchors)
-    id_d = _anchored_identity(identity_deltas, anchors.vertices, anchors.bary)  # (B, C, L, I, 3)
+    id_d = at_anchors(identity_deltas, anchors.vertices, anchors.bary)  # (B, C, L, I, 3)
     dev, dt = neutral.device, neutral.dtype
     b = state.rot.shape[0]
     shapes = torch.as_tensor(sorted(set(jaw_shapes(model.names)) | set(mouth_shapes(model.names))), device=dev)
     n_p, n_i = 6 + len(shapes), identity.shape[0]
     use_photo = photo is not None and photo_weight > 0
     if use_photo:  # the photometric unknowns per frame: the active weights, then the identity
-        p_neutral, p_deltas = photo.neutral, photo.deltas
-        p_basis = torch.cat([p_deltas[:, :, :, shapes].transpose(-1, -2),
-                             _anchored_identity(identity_deltas, photo.vertices, photo.bary).transpose(-1, -2)], -1)
+        p_basis = torch.cat([photo.deltas[:, :, :, shapes].transpose(-1, -2),
+                             at_anchors(identity_deltas, photo.vertices, photo.bary).transpose(-1, -2)], -1)
 
     def photo_term(weights0: Tensor) -> PhotoTerm:
-        inactive = weights0.clone()
-        inactive[:, shapes] = 0.0
-        return PhotoTerm(photo, views, photo_weight, p_neutral + torch.einsum("bk,bclkd->bcld", inactive, p_deltas),
-                         p_basis)
+        return PhotoTerm.about(photo, views, photo_weight, weights0, shapes, p_basis)
 
     def landmark_fn(rot0: Tensor, weights0: Tensor, ident: Tensor) -> Callable[[Tensor], Tensor]:
         shape = torch.einsum("i,bclid->bcld", ident, id_d)
@@ -187,7 +178,7 @@ def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews
                                                   photometric=photo_args)
             model.neutral = base
             if samples is not None:  # the samples' neutral without the identity (the step adds it)
-                samples = samples._replace(neutral=(base[samples.vertices] * samples.bary[..., None]).sum(-2))
+                samples = samples._replace(neutral=at_anchors(base, samples.vertices, samples.bary))
         w_extra = anchors.rendered.to(w68.dtype)[..., None] * extra_weight  # (B, C, 1)
         w_lm = torch.cat([w68.expand(b, c, 68), w_extra.expand(b, c, len(extra))], -1)
         state, identity = _identity_step(model, id_t, views, anchors, state, identity, w_lm, prior=prior,

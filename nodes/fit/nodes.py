@@ -67,29 +67,35 @@ def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], camer
             raise InputError("landmarks", f"camera {c}: expected {frames} frames, found {lm.points.shape[0]}")
 
 
-def _plate_crops(images: list[ImageSequence], box: np.ndarray, seen: np.ndarray, frames: np.ndarray,
+def _linear_rgb(images: ImageSequence, frames: Any = slice(None)) -> np.ndarray:
+    """(F', H, W, 3) linear colour of the frames asked for (one channel repeated for grey plates)."""
+    plate = images.to_linear()
+    idx = plate.colour_channels()
+    pix = plate.pixels[frames]
+    return pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
+
+
+def _plate_crops(plates: list[np.ndarray], box: np.ndarray, seen: np.ndarray, frames: np.ndarray,
                  device: str) -> Any:
-    """(B, C, S, S, 3) linear crops of the plates at the boxes (B selected frames), as the
-    landmark network's input (`crop_and_resize`, S = 192); black where a view did not see the face."""
+    """(B, C, S, S, 3) linear crops of the plates (`_linear_rgb`, one per camera) at the boxes (B
+    selected frames), as the landmark network's input (`crop_and_resize`, S = 192); black where a
+    view did not see the face."""
     import torch
 
     from ..landmarks.network import MESH_SIZE, crop_and_resize
 
     b, c = box.shape[:2]
     out = torch.zeros(b, c, MESH_SIZE, MESH_SIZE, 3, device=device)
-    for cam, seq in enumerate(images):
-        lin = seq.to_linear()
-        idx = lin.colour_channels()
-        pix = lin.pixels[frames]
-        pix = pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
+    for cam, pix in enumerate(plates):
         rows = np.flatnonzero(seen[:, cam])
         if len(rows):
-            out[rows, cam] = crop_and_resize(torch.as_tensor(np.ascontiguousarray(pix[rows], np.float32),
+            out[rows, cam] = crop_and_resize(torch.as_tensor(np.ascontiguousarray(pix[frames[rows]], np.float32),
                                                              device=device), box[rows, cam], MESH_SIZE)
     return out
 
 
-def _check_images(images: list[ImageSequence], cameras: list[Camera], frames: int) -> None:
+def _checked_plates(images: list[ImageSequence], cameras: list[Camera], frames: int) -> list[np.ndarray]:
+    """The plates as `_linear_rgb` arrays (converted once per run), after checking them against the cameras."""
     if len(images) != len(cameras):
         raise InputError("images", f"expected one plate per camera ({len(cameras)}), found {len(images)}")
     for c, (seq, cam) in enumerate(zip(images, cameras)):
@@ -99,14 +105,15 @@ def _check_images(images: list[ImageSequence], cameras: list[Camera], frames: in
         if (w, h) != (cam.width, cam.height):
             raise InputError("images", f"camera {c}: expected {cam.width}x{cam.height} plates (the camera's), "
                              f"found {w}x{h}")
+    return [_linear_rgb(seq) for seq in images]
 
 
 def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera], device: str,
            select: np.ndarray | None = None, allow_mesh: bool = False,
-           images: list[ImageSequence] | None = None) -> Any:
+           plates: list[np.ndarray] | None = None) -> Any:
     """FitViews of the landmarks: targets (F, C, 68, 2), or with `allow_mesh` and 468-point
     landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`. With
-    `images`, the plates' crops too (for the photometric term)."""
+    `plates` (`_checked_plates`), their crops too (for the photometric term)."""
     import torch
 
     from ..landmarks.correspondence import MEDIAPIPE_TO_68, MESH_EXTRA_POINTS
@@ -128,11 +135,11 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
     box = np.where(seen[..., None], box, np.array([0.0, 0.0, 1.0, 1.0], np.float32))
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
     dist = np.array([[c.k1, c.k2] for c in cameras])
-    plates = _plate_crops(images, box, seen, frames, device) if images else None
+    crops = _plate_crops(plates, box, seen, frames, device) if plates else None
     return FitViews(t(pts), t(box), torch.as_tensor(seen, device=device),
                     t(np.stack([c.world_to_camera for c in cameras])),
                     t([[c.fx, c.fy, c.cx, c.cy] for c in cameras]), t(dist) if np.abs(dist).max() > 0 else None,
-                    t([[c.width, c.height] for c in cameras]), plates)
+                    t([[c.width, c.height] for c in cameras]), crops)
 
 
 def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -204,9 +211,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     fm = _fit_model(model, appearance, dev)
     views = _views(landmarks, boxes, cameras, dev)
     frames = views.seen.shape[0]
-    photo = bool(images) and p.photometric_weight > 0
-    if images:
-        _check_images(images, cameras, frames)
+    plates = _checked_plates(images, cameras, frames) if images else None
+    photo = bool(plates) and p.photometric_weight > 0
     k = len(model.expression_names)
     found = views.seen.any(1).cpu().numpy()
     pose = np.full((frames, 12), np.nan, np.float32)
@@ -218,7 +224,7 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     idx = np.flatnonzero(found)
     for n0 in range(0, len(idx), p.batch):
         sel = idx[n0:n0 + p.batch]
-        sub = _views(landmarks, boxes, cameras, dev, select=sel, images=images if photo else None)
+        sub = _views(landmarks, boxes, cameras, dev, select=sel, plates=plates if photo else None)
         if start is None:
             state = initial_pose(fm, sub)
             stages, first_on_landmarks = RIGID_STAGES, True
@@ -327,13 +333,6 @@ class EstimateAppearance(Node):
         p = self.params
         albedo0, sh0, bg0, hidden = _appearance(model, None)
         found = np.isfinite(boxes.values).all(1) & (landmarks.confidence.min(1) >= _MIN_PRESENCE)
-        plate = images.to_linear()
-        idx = plate.colour_channels()
-
-        def pixels_of(frame: int) -> np.ndarray:
-            pix = plate.pixels[frame]
-            return pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
-
         if p.mode == "default":
             value = appearance_json(albedo0, sh0, tuple(bg0), hidden)
             value["noise"] = float(p.noise)
@@ -343,14 +342,14 @@ class EstimateAppearance(Node):
                 if not 0 <= frame < len(found):
                     raise InputError("frame", f"expected a frame of the shot ({self.frames.start}.."
                                      f"{self.frames.start + len(found) - 1}), found {p.frame}")
-                value["noise"] = estimate_noise(pixels_of(frame))
+                value["noise"] = estimate_noise(_linear_rgb(images, frame))
             return {"appearance": JsonValue(value)}
         if not found.any():
             raise InputError("landmarks", "expected a frame with a face to estimate the appearance from, found none")
         frame = _near_neutral_frame(landmarks, found) if p.frame < 0 else p.frame - self.frames.start
         if not 0 <= frame < len(found) or not found[frame]:
             raise InputError("landmarks", f"expected a face in frame {p.frame}, found none")
-        pixels = pixels_of(frame)
+        pixels = _linear_rgb(images, frame)
         noise = estimate_noise(pixels) if p.noise < 0 else float(p.noise)
         from ..landmarks.network import load_face_mesh
         from .appearance import estimate_appearance
@@ -450,11 +449,10 @@ class EstimateIdentity(Node):
                 raise InputError("landmarks", "expected frames with a face to estimate the identity from, found none")
             pick = found[np.unique(np.linspace(0, len(found) - 1, min(p.frames_used, len(found))).round().astype(int))]
             fm = _fit_model(model, appearance, self.device)
-            photo = bool(images) and appearance is not None and p.photometric_weight > 0
-            if images:
-                _check_images(images, cameras, views.seen.shape[0])
+            plates = _checked_plates(images, cameras, views.seen.shape[0]) if images else None
+            photo = bool(plates) and appearance is not None and p.photometric_weight > 0
             sub = _views(landmarks, boxes, cameras, self.device, select=pick, allow_mesh=True,
-                         images=images if photo else None)
+                         plates=plates if photo else None)
             mesh = sub.target.shape[2] > 68
             sub68 = dataclasses.replace(sub, target=sub.target[:, :, :68])
             net = load_face_mesh(self.device)

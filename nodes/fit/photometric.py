@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from .energy import axis_angle_to_rotmat, project_views
-from .views import FitModel, FitViews, _barycentrics, image_to_crop
+from .views import FitModel, FitViews, _barycentrics, at_anchors, image_to_crop
 
 __all__ = ["PHOTO_UNIT", "PhotoSamples", "gaussian_blur", "sample_bilinear", "photometric_samples",
            "photometric_residuals", "photometric_point_jacobian", "PhotoTerm"]
@@ -152,16 +152,14 @@ def photometric_samples(model: FitModel, views: FitViews, image: Tensor, triangl
     plates = gaussian_blur(views.plates.reshape(n, s, s, 3).to(dt), sigma)
     # Huber weights from the residual at the start of the round (the anchors' own projection)
     resid = (sample_bilinear(plates, (bary[..., None] * corners).sum(-2)) - colour).norm(dim=-1)
-    med = torch.stack([resid[i][valid[i]].median() if valid[i].any() else resid.new_tensor(1.0)
-                       for i in range(n)]) if n else resid.new_zeros(0)
+    med = torch.where(valid, resid, torch.full_like(resid, float("nan"))).nanmedian(1).values.nan_to_num(1.0)
     thresh = (huber * 1.4826 * med).clamp_min(1e-3)[:, None]
     rho = torch.where(resid <= thresh, torch.ones_like(resid), thresh / resid.clamp_min(1e-9))
     weight = torch.where(valid, rho, torch.zeros_like(rho)) / count.clamp_min(1)[:, None].to(dt)
     shape = (b, c, m)
     vertices, bary = corner_ids.reshape(*shape, 3), bary.reshape(*shape, 3)
-    neutral = (model.neutral[vertices] * bary[..., None]).sum(-2)
-    deltas = (model.deltas[:, vertices] * bary[None, ..., None]).sum(-2).permute(1, 2, 3, 0, 4)
-    return PhotoSamples(vertices, bary, colour.reshape(*shape, 3), weight.reshape(shape), plates, s, neutral, deltas)
+    return PhotoSamples(vertices, bary, colour.reshape(*shape, 3), weight.reshape(shape), plates, s,
+                        at_anchors(model.neutral, vertices, bary), at_anchors(model.deltas, vertices, bary))
 
 
 def photometric_residuals(samples: PhotoSamples, points: Tensor, views: FitViews, weight: float) -> Tensor:
@@ -220,6 +218,17 @@ class PhotoTerm:
     def __init__(self, samples: PhotoSamples, views: FitViews, weight: float, local0: Tensor, basis: Tensor):
         self.samples, self.views, self.weight = samples, views, float(weight)
         self.local0, self.basis = local0, basis
+
+    @classmethod
+    def about(cls, samples: PhotoSamples, views: FitViews, weight: float, weights: Tensor, active: Tensor | list[int],
+              basis: Tensor) -> "PhotoTerm":
+        """The term about expression weights (B, K) whose `active` shapes are the unknowns: local0
+        holds the samples' neutral with the other shapes at `weights`, `basis` (B, C, N, 3, S+)
+        the active shapes at the samples (then any other linear unknowns, e.g. identity components)."""
+        inactive = weights.clone()
+        inactive[:, active] = 0.0
+        return cls(samples, views, weight, samples.neutral + torch.einsum("bk,bclkd->bcld", inactive, samples.deltas),
+                   basis)
 
     def _project(self, world: Tensor) -> Tensor:
         v = self.views

@@ -41,7 +41,7 @@ from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
                      project_views)
 from .photometric import PhotoSamples, PhotoTerm, photometric_samples
-from .views import (Anchors, FitModel, FitViews, anchors_from_render, crop_to_image, landmark_anchors,
+from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, crop_to_image, landmark_anchors,
                     network_points, render_crops)
 
 __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
@@ -145,11 +145,8 @@ def initial_pose(model: FitModel, views: FitViews) -> PoseState:
 
 def _anchored(model: FitModel, anchors: Anchors) -> tuple[Tensor, Tensor]:
     """(B, C, L, 3) anchored neutral and (B, C, L, K, 3) anchored shapes."""
-    bary = anchors.bary[..., None]
-    neutral = (model.neutral[anchors.vertices] * bary).sum(-2)
-    deltas = model.deltas[:, anchors.vertices]  # (K, B, C, L, 3, 3)
-    deltas = (deltas * bary[None]).sum(-2).permute(1, 2, 3, 0, 4)
-    return neutral, deltas
+    return at_anchors(model.neutral, anchors.vertices, anchors.bary), at_anchors(model.deltas, anchors.vertices,
+                                                                                 anchors.bary)
 
 
 def predicted_points(model: FitModel, views: FitViews, anchors: Anchors, state: PoseState) -> Tensor:
@@ -233,11 +230,9 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     b = state.rot.shape[0]
     use_photo = photo is not None and photo_weight > 0
     if use_photo:
-        p_neutral, p_deltas = photo.neutral, photo.deltas
         shape_list = list(stage.shapes)
-        p_basis = p_deltas[:, :, :, shape_list].transpose(-1, -2)  # (B, C, N, 3, S)
+        p_basis = photo.deltas[:, :, :, shape_list].transpose(-1, -2)  # (B, C, N, 3, S)
     dev, dt = neutral.device, neutral.dtype
-    b = state.rot.shape[0]
     w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight, jaw=stage.jaw_weight)
     w_lm = torch.as_tensor(w_np, dtype=dt, device=dev)
     shapes = torch.as_tensor(list(stage.shapes), dtype=torch.long, device=dev)
@@ -260,12 +255,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
                               edge_weight=edge_weight, rigid_prior=rigid_prior,
                               rigid_prior_weight=rigid_prior_weight)
         x0 = unknowns(trans, weights)
-        term = None
-        if use_photo:
-            inactive = weights.clone()
-            inactive[:, shape_list] = 0.0
-            term = PhotoTerm(photo, views, photo_weight, p_neutral + torch.einsum("bk,bclkd->bcld", inactive, p_deltas),
-                             p_basis)
+        term = PhotoTerm.about(photo, views, photo_weight, weights, shape_list, p_basis) if use_photo else None
 
         def residuals(xf: Tensor) -> Tensor:
             xa = full(xf, x0)
@@ -290,8 +280,8 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
 
     with torch.no_grad():
         fn, jac_fn, x = linearize(rot, trans, weights)
-        m_lm = fn(x).shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
         r = fn(x)
+        m_lm = r.shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
         cost = (r * r).sum(1)
         lam = torch.full((b,), 1e-3, dtype=dt, device=dev)
         running = torch.ones(b, dtype=torch.bool, device=dev)

@@ -26,7 +26,7 @@ from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from ..landmarks.network import MESH_SIZE, srgb_encode
 from ..render.renderer import render_mesh, triangle_adjacency
 
-__all__ = ["FitModel", "FitViews", "Anchors", "crop_intrinsics", "crop_to_image", "image_to_crop",
+__all__ = ["FitModel", "FitViews", "Anchors", "at_anchors", "crop_intrinsics", "crop_to_image", "image_to_crop",
            "render_crops", "network_points", "landmark_anchors", "anchors_from_render"]
 
 
@@ -118,6 +118,20 @@ class Anchors(NamedTuple):
     bary: Tensor
     offset: Tensor
     rendered: Tensor
+
+
+def at_anchors(values: Tensor, vertices: Tensor, bary: Tensor) -> Tensor:
+    """Per-vertex vectors interpolated at anchors (triangle corners + barycentrics).
+
+    Args:
+        values: (V, 3) one vector per vertex, or (K, V, 3) K of them (shapes, components).
+        vertices: (B, C, L, 3) int64 corners; bary: (B, C, L, 3) barycentrics.
+    Returns:
+        (B, C, L, 3), or (B, C, L, K, 3) for (K, V, 3) values.
+    """
+    if values.ndim == 2:
+        return (values[vertices] * bary[..., None]).sum(-2)
+    return (values[:, vertices] * bary[None, ..., None]).sum(-2).permute(1, 2, 3, 0, 4)
 
 
 def crop_intrinsics(intrinsics: Tensor, boxes: Tensor, size: int) -> Tensor:
