@@ -31,10 +31,12 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--noise", type=float, default=0.005, help="plate noise (standard deviation, linear)")
     ap.add_argument("--identity", default="estimate", choices=["estimate", "mean", "truth"],
                     help="truth: the plates' own identity, read from a file (the fit without identity error)")
     ap.add_argument("--albedo-prior", type=float, default=None, help="fit.EstimateAppearance prior_weight")
     ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
+    ap.add_argument("--appearance-frames", type=int, default=None, help="fit.EstimateAppearance frames_used")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
     ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
     ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
@@ -51,7 +53,7 @@ def main() -> None:
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
     truth = random_face_parameters(model, args.frames, seed=args.seed, distance_cm=65.0)
-    plates = render_plates(model, [cam], truth)[0]
+    plates = render_plates(model, [cam], truth, noise=args.noise)[0]
     seq = ImageSequence(plates, colour_space="linear")
     f = args.frames
     times = {}
@@ -81,6 +83,8 @@ def main() -> None:
     app_params = {} if args.albedo_prior is None else {"prior_weight": args.albedo_prior}
     if args.render_noise is not None:
         app_params["noise"] = args.render_noise
+    if args.appearance_frames is not None:
+        app_params["frames_used"] = args.appearance_frames
     app = run_node(EstimateAppearance, app_params, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
                    model=first["fitted_model"])
     common = dict(views, appearance=app["appearance"])
@@ -118,6 +122,13 @@ def main() -> None:
     est = np.asarray(ident["identity"].value["identity"])
     print(f"identity: norm {np.linalg.norm(est):.2f} (truth {np.linalg.norm(truth['identity']):.2f}), "
           f"error norm {np.linalg.norm(est - truth['identity']):.2f}")
+    from scipy.spatial.transform import Rotation
+
+    off = Rotation.from_matrix(np.einsum("fji,fjk->fik", truth["rotation"][ok], v[ok, :9].reshape(-1, 3, 3))).as_rotvec()
+    off = np.degrees(off)  # model-frame error of each frame
+    spread = np.linalg.norm(off - np.median(off, 0), axis=1)
+    print(f"model-frame rotation error: median vector {np.round(np.median(off, 0), 2)} deg, "
+          f"median distance from it {np.median(spread):.2f} deg")
     print(f"accuracy ({ok.sum()} fitted frames, identity={args.identity}): median / 90th percentile")
     for name, e in (("rotation deg", rot), ("x cm", dt[:, 0]), ("y cm", dt[:, 1]), ("depth cm", dt[:, 2]),
                     ("jawOpen", jaw)):

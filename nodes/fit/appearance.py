@@ -25,7 +25,7 @@ import torch
 
 from ..render.renderer import render_mesh, sh_basis, vertex_normals
 
-__all__ = ["Appearance", "estimate_appearance", "estimate_noise"]
+__all__ = ["Appearance", "albedo_smoothing_steps", "estimate_appearance", "estimate_noise"]
 
 
 class Appearance(NamedTuple):
@@ -61,49 +61,93 @@ def estimate_noise(image: np.ndarray) -> float:
     return float(np.median(np.abs(r)) / (0.6745 * 6.0))
 
 
+def albedo_smoothing_steps(noise: float, target: float = 0.01) -> int:
+    """Steps of evidence pooling (`estimate_appearance`'s `smooth_steps`) for a plate of `noise`.
+
+    A vertex's albedo estimate carries about one plate pixel's noise (a face of about 100 px has
+    about a pixel per vertex); pooling n pixels divides it by sqrt(n), and k walk steps pool
+    about 1 + k / 2 of them. The steps bring the albedo's noise to `target` (linear units):
+    none for a clean plate (noise <= target), 16 for noise 0.03.
+    """
+    if not np.isfinite(noise) or noise <= target:
+        return 0
+    return int(min(np.ceil(2.0 * ((noise / target) ** 2 - 1.0)), 64))
+
+
+def _lazy_walk(faces: np.ndarray, count: int):
+    """(V, V) scipy.sparse `(I + Deg^-1 A) / 2` of the triangles' edges (the walk of `smooth_steps`)."""
+    from scipy import sparse
+
+    from ..dynamics.propagate import uniform_laplacian
+
+    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0)
+    return (sparse.identity(count, format="csr") - 0.5 * uniform_laplacian(edges, count)).tocsr()
+
+
 def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
                         intrinsics: np.ndarray, default_albedo: np.ndarray, *, distortion: np.ndarray | None = None,
-                        prior_weight: float = 1.0, region: np.ndarray | None = None) -> Appearance:
-    """Estimate albedo and SH lighting from one linear plate (see the module docstring).
+                        prior_weight: float = 1.0, region: np.ndarray | None = None,
+                        smooth_steps: int = 0) -> Appearance:
+    """Estimate albedo and SH lighting from one or several linear plates (see the module docstring).
+
+    With several frames (the head seen in several poses, the light fixed in the world) the
+    lighting is one least-squares fit over every frame's pixels and each vertex's albedo is the
+    mean of its frames' estimates, each pixel weighted by `cos^2` of its surface's angle to the
+    view (grazing pixels are blurred and mostly shadow). One frame's painting carries that
+    frame's pose error into every later render; several frames average it.
 
     Args:
-        image: (H, W, 3) linear RGB plate.
-        vertices: (V, 3) the fitted head, world frame, cm.
+        image: (H, W, 3) linear RGB plate, or (N, H, W, 3) N of them.
+        vertices: (V, 3) the fitted head, world frame, cm, or (N, V, 3) one per plate.
         faces: (T, 3) triangles drawn.
         world_to_camera: (4, 4); intrinsics: (4,) fx fy cx cy, pixels; distortion: (2,) or None.
         default_albedo: (V, 3) the prior albedo a0.
         prior_weight: mu, in pixels' worth of evidence.
         region: (V,) bool vertices whose pixels fit the lighting (default: all).
+        smooth_steps: k, steps of a lazy random walk on the mesh's edges (`(I + Deg^-1 A) / 2`)
+            that pool each vertex's evidence with its neighbours' before the division: the
+            albedo of a noisy plate is the mean over a neighbourhood that grows with k (about
+            1 + k rings' worth of pixels), not one pixel's noise (`albedo_smoothing_steps`).
     Returns:
         Appearance.
     """
-    h, w = image.shape[:2]
+    images = np.asarray(image)[None] if np.ndim(image) == 3 else np.asarray(image)
+    verts_np = np.asarray(vertices)[None] if np.ndim(vertices) == 2 else np.asarray(vertices)
+    if len(images) != len(verts_np):
+        raise ValueError(f"vertices: expected one head per plate ({len(images)}), found {len(verts_np)}")
+    n_f, h, w = images.shape[:3]
     dt = torch.float32
-    verts = torch.as_tensor(vertices, dtype=dt)[None]
+    verts = torch.as_tensor(verts_np, dtype=dt)
     faces_t = torch.as_tensor(np.asarray(faces, np.int64))
     a0 = torch.as_tensor(default_albedo, dtype=dt)
+    w2c = torch.as_tensor(world_to_camera, dtype=dt)
     with torch.no_grad():
-        out = render_mesh(verts, faces_t, torch.as_tensor(world_to_camera, dtype=dt)[None],
-                          torch.as_tensor(intrinsics, dtype=dt)[None], h, w, albedo=a0[None],
+        out = render_mesh(verts, faces_t, w2c[None].expand(n_f, 4, 4),
+                          torch.as_tensor(intrinsics, dtype=dt)[None].expand(n_f, 4), h, w, albedo=a0[None],
                           sh=torch.zeros(1, 9, 3), distortion=None if distortion is None else
-                          torch.as_tensor(distortion, dtype=dt)[None], antialias=False)
-        tri = out.triangle[0]
-        covered = tri >= 0
+                          torch.as_tensor(distortion, dtype=dt)[None].expand(n_f, 2), antialias=False)
+        tri = out.triangle
+        covered = tri >= 0  # (N, H, W)
         interior = covered.clone()  # drop silhouette pixels (their colour mixes the background)
-        interior[1:] &= covered[:-1]
-        interior[:-1] &= covered[1:]
         interior[:, 1:] &= covered[:, :-1]
         interior[:, :-1] &= covered[:, 1:]
-        img = torch.as_tensor(image[..., :3], dtype=dt)
+        interior[:, :, 1:] &= covered[:, :, :-1]
+        interior[:, :, :-1] &= covered[:, :, 1:]
+        img = torch.as_tensor(images[..., :3], dtype=dt)
         bg = img[~covered].median(0).values if (~covered).any() else torch.full((3,), 0.2)
-        ys, xs = torch.nonzero(interior, as_tuple=True)
-        corner = faces_t[tri[ys, xs]]  # (N, 3)
-        bary = out.barycentrics[0, ys, xs]  # (N, 3)
-        normals = vertex_normals(verts, faces_t)[0]
-        n = (bary[..., None] * normals[corner]).sum(1)
+        fs, ys, xs = torch.nonzero(interior, as_tuple=True)
+        corner = faces_t[tri[fs, ys, xs]]  # (N, 3)
+        bary = out.barycentrics[fs, ys, xs]  # (N, 3)
+        normals = vertex_normals(verts, faces_t)  # (F, V, 3)
+        n = (bary[..., None] * normals[fs[:, None], corner]).sum(1)
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        point = (bary[..., None] * verts[fs[:, None], corner]).sum(1)  # world, cm
+        centre = -w2c[:3, :3].T @ w2c[:3, 3]
+        view = centre - point
+        cos = (n * view).sum(-1) / view.norm(dim=-1).clamp_min(1e-9)
+        weight = cos.clamp_min(0.0) ** 2 if n_f > 1 else torch.ones_like(cos)
         basis = sh_basis(n)  # (N, 9)
-        colour = img[ys, xs]  # (N, 3)
+        colour = img[fs, ys, xs]  # (N, 3)
         a_p = (bary[..., None] * a0[corner]).sum(1)
         use = torch.ones(len(ys), dtype=torch.bool)
         if region is not None:
@@ -115,8 +159,16 @@ def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarr
             sh[:, ch] = sol[:, 0].float()
         shading = (basis @ sh).clamp_min(0.05)  # (N, 3)
         ratio = colour / shading
-        v = len(vertices)
-        acc = torch.zeros(v, 3).index_add(0, corner.reshape(-1), (bary[..., None] * ratio[:, None]).reshape(-1, 3))
-        wsum = torch.zeros(v).index_add(0, corner.reshape(-1), bary.reshape(-1))
+        v = a0.shape[0]
+        bw = bary * weight[:, None]  # (N, 3)
+        acc = torch.zeros(v, 3).index_add(0, corner.reshape(-1), (bw[..., None] * ratio[:, None]).reshape(-1, 3))
+        wsum = torch.zeros(v).index_add(0, corner.reshape(-1), bw.reshape(-1))
+        if smooth_steps > 0:
+            walk = _lazy_walk(np.asarray(faces, np.int64), v)
+            evidence = np.concatenate([acc.numpy(), wsum.numpy()[:, None]], 1).astype(np.float64)
+            for _ in range(int(smooth_steps)):
+                evidence = walk @ evidence
+            acc = torch.as_tensor(evidence[:, :3], dtype=dt)
+            wsum = torch.as_tensor(evidence[:, 3], dtype=dt)
         albedo = ((acc + prior_weight * a0) / (wsum[:, None] + prior_weight)).clamp(0.0, 1.0)
     return Appearance(albedo.numpy(), sh.numpy(), bg.numpy(), (wsum > 0).numpy())

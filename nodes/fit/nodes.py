@@ -46,6 +46,22 @@ PHOTOMETRIC_WEIGHT = 500.0
 """Default w_p of the photometric term (`nodes.fit.photometric`). bench/fit.py, seed 0, 16 frames, the
 true identity: median rotation 1.73 deg with landmarks only, 1.21 with w_p 68, 0.77 with 500."""
 
+PHOTOMETRIC_REFERENCE_NOISE = 0.005
+"""Plate noise (linear) at which `PHOTOMETRIC_WEIGHT` was chosen (bench/fit.py's default)."""
+
+
+def photometric_weight_for(weight: float, appearance: JsonValue | None) -> float:
+    """w_p for the fit of a plate whose noise `fit.EstimateAppearance` measured ('plate_noise').
+
+    The landmark network's reading of a noisy plate jitters more than the photometric term's
+    mean over its thousands of samples, so the photometric term's weight grows with the noise:
+    `w_p * max(1, noise / PHOTOMETRIC_REFERENCE_NOISE)`. bench/fit.py, seed 0, noise 0.03, 16
+    frames: median rotation 3.7 deg with w_p 500, 2.3 with 3000 (the factor, 6). Appearances
+    without a measured noise (the default, or an older node's) keep `weight`.
+    """
+    noise = (appearance.value.get("plate_noise") if appearance is not None else None) or 0.0
+    return float(weight) * max(1.0, float(noise) / PHOTOMETRIC_REFERENCE_NOISE)
+
 
 # -- shared helpers --------------------------------------------------------------------------
 def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
@@ -193,7 +209,9 @@ class _FitParams(NodeParams):
     photometric_weight: float = Param(PHOTOMETRIC_WEIGHT, ge=0, description="w_p of the photometric term "
                                       "(fit.photometric: the plate at the head's surface points against the "
                                       "render's colour, robust), 256-crop pixel^2 per (0.01 linear)^2 of mean "
-                                      "residual; used when `images` is connected; 0 = landmarks only.")
+                                      "residual, scaled up on noisy plates (fit.nodes.photometric_weight_for, from "
+                                      "the appearance's 'plate_noise'); used when `images` is connected; 0 = "
+                                      "landmarks only.")
     batch: int = Param(8, ge=1, description="Frames solved together.", affects_output=False)
 
 
@@ -237,7 +255,9 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
         state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
                                  first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
                                  edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
-                                 supersample=p.supersample, photometric_weight=p.photometric_weight if photo else 0.0)
+                                 supersample=p.supersample,
+                                 photometric_weight=photometric_weight_for(p.photometric_weight, appearance) if photo
+                                 else 0.0)
         if p.backprop_steps:
             state, e = refine_backprop(fm, sub, state, stages[-1], network, steps=p.backprop_steps,
                                        prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
@@ -282,21 +302,58 @@ class PlateCamera(Node):
         return {"camera": cam}
 
 
-def _near_neutral_frame(landmarks: Landmarks2D, found: np.ndarray) -> int:
-    """The detected frame with the least open mouth (inner-lip gap over the eye distance)."""
+def _mouth_gaps(landmarks: Landmarks2D, found: np.ndarray) -> np.ndarray:
+    """(F,) inner-lip gap over the eye distance; inf where no face was found."""
     from ..landmarks.correspondence import inter_ocular_distance
 
     pts = landmarks.points.astype(np.float64)
     gap = np.linalg.norm(pts[:, 66] - pts[:, 62], axis=-1) / np.maximum(inter_ocular_distance(pts), 1e-6)
-    gap = np.where(found & np.isfinite(gap), gap, np.inf)
-    return int(np.argmin(gap))
+    return np.where(found & np.isfinite(gap), gap, np.inf)
+
+
+def _near_neutral_frame(landmarks: Landmarks2D, found: np.ndarray) -> int:
+    """The detected frame with the least open mouth (inner-lip gap over the eye distance)."""
+    return int(np.argmin(_mouth_gaps(landmarks, found)))
+
+
+def _painting_frames(landmarks: Landmarks2D, found: np.ndarray, count: int, exclude: int) -> np.ndarray:
+    """Up to `count` detected frames other than `exclude`, the least open mouths first."""
+    gap = _mouth_gaps(landmarks, found)
+    gap[exclude] = np.inf
+    order = np.argsort(gap, kind="stable")[:max(count, 0)]
+    return order[np.isfinite(gap[order])]
+
+
+def _render_noise(asked: float, plate_noise: float, above: float = 0.01) -> float:
+    """fit.EstimateAppearance's render noise: `asked` >= 0 as given, -1 the plate's, -2 the plate's above `above`."""
+    if asked >= 0:
+        return float(asked)
+    if asked == -1 or plate_noise > above:
+        return float(plate_noise)
+    return 0.0
+
+
+def painting_frame_count(noise: float, target: float = 0.01, most: int = 8) -> int:
+    """Frames `fit.EstimateAppearance` paints by default, for a plate of `noise` (linear).
+
+    The painting frames' poses come from the landmarks alone, and every later fit aligns the
+    plate to the painting (the photometric term), so a painting frame's pose error becomes
+    every frame's. On a noisy plate that error is mostly random (bench/fit.py, noise 0.03, 16
+    frames: the frames' errors spread 3.6 deg about their median), and n frames divide it by
+    about sqrt(n): n = (noise / target)^2, at least 1, at most `most`. On a clean plate the
+    error is a bias shared by the frames and one frame (the least open mouth) paints sharper
+    (seed 1, noise 0.005: 2.4 deg with 1 frame, 3.2 with 8).
+    """
+    if not np.isfinite(noise) or noise <= target:
+        return 1
+    return int(min(max(round((noise / target) ** 2), 1), most))
 
 
 class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
     type_name = "fit.EstimateAppearance"
-    version = 3
+    version = 4
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -309,13 +366,19 @@ class EstimateAppearance(Node):
                                     "(pixels' worth of evidence).")
         iterations: int = Param(10, ge=1, le=500, description="Levenberg-Marquardt iterations per rigid stage.")
         rounds: int = Param(4, ge=1, le=10, description="Outer rounds of the rigid fit (see fit.RigidPose).")
+        frames_used: int = Param(0, ge=0, le=50, description="Frames painted: `frame`, then the detected "
+                                 "frames with the least open mouths among the others (each vertex's albedo is "
+                                 "their weighted mean; the lighting one fit to all); 0 = from the plate's noise "
+                                 "(fit.nodes.painting_frame_count: 1 on a clean plate, up to 8 on a noisy one).")
         passes: int = Param(2, ge=1, le=5, description="Alternations of rigid pose (with the current "
                             "appearance) and appearance (at that pose).")
-        noise: float = Param(0.0, ge=-1, description="Pixel noise (standard deviation, linear) added to the fit's "
+        noise: float = Param(-2.0, ge=-2, description="Pixel noise (standard deviation, linear) added to the fit's "
                              "renders so that the network reads them as it reads a noisy plate; -1 = the plate's, "
-                             "estimated (fit.appearance.estimate_noise). Off by default: with the true appearance it "
-                             "helps (bench/fit.py, true identity: median rotation 1.3 -> 1.0 deg), but an estimated "
-                             "albedo already carries the plate's noise and it then hurts (1.6 -> 2.2 deg).")
+                             "estimated (fit.appearance.estimate_noise); -2 = the plate's where it is above 0.01 "
+                             "(where the painted albedo is pooled and so carries little of it), else none. On a "
+                             "clean plate an albedo painted from one frame already carries the plate's noise and "
+                             "adding it hurts (bench/fit.py, seed 0, noise 0.005: 1.6 -> 2.2 deg); on a noisy one it "
+                             "helps (noise 0.03: 3.7 -> 2.9 deg).")
 
     images = In(ImageSequence, doc="Plate of the first camera.")
     landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks of the first camera, pixels.")
@@ -323,7 +386,8 @@ class EstimateAppearance(Node):
     camera = In(Camera, doc="The first camera.")
     model = In(FaceModel, doc="The face model (identity applied, if known).")
     appearance = Out(JsonValue, doc="{'albedo': V x 3, 'sh': 9 x 3, 'background': 3, 'hidden_faces': [...], "
-                     "'noise': the plate's noise, 'frame': the frame used (mode 'estimate')}.")
+                     "'noise': the noise added to the fit's renders; mode 'estimate': 'plate_noise' (the plate's, "
+                     "estimated), 'frame' (the first frame painted) and 'frames' (all the frames painted)}.")
 
     def run(self, images: ImageSequence, landmarks: Landmarks2D, boxes: ParamSequence, camera: Camera,
             model: FaceModel) -> dict[str, JsonValue]:
@@ -342,35 +406,44 @@ class EstimateAppearance(Node):
                 if not 0 <= frame < len(found):
                     raise InputError("frame", f"expected a frame of the shot ({self.frames.start}.."
                                      f"{self.frames.start + len(found) - 1}), found {p.frame}")
-                value["noise"] = estimate_noise(_linear_rgb(images, frame))
+                value["noise"] = _render_noise(p.noise, estimate_noise(_linear_rgb(images, frame)))
             return {"appearance": JsonValue(value)}
         if not found.any():
             raise InputError("landmarks", "expected a frame with a face to estimate the appearance from, found none")
         frame = _near_neutral_frame(landmarks, found) if p.frame < 0 else p.frame - self.frames.start
         if not 0 <= frame < len(found) or not found[frame]:
             raise InputError("landmarks", f"expected a face in frame {p.frame}, found none")
-        pixels = _linear_rgb(images, frame)
-        noise = estimate_noise(pixels) if p.noise < 0 else float(p.noise)
+        plates = _linear_rgb(images)
+        plate_noise = estimate_noise(plates[frame])
+        noise = _render_noise(p.noise, plate_noise)
+        count = p.frames_used or painting_frame_count(plate_noise)
+        pick = np.concatenate([[frame], _painting_frames(landmarks, found, count - 1, exclude=frame)]).astype(int)
         from ..landmarks.network import load_face_mesh
-        from .appearance import estimate_appearance
+        from .appearance import albedo_smoothing_steps, estimate_appearance
         from .solve import RIGID_STAGES, fit_stages, initial_pose
 
         fm = _fit_model(model, None, self.device)
-        views = _views([landmarks], [boxes], [camera], self.device, select=np.array([frame]))
+        views = _views([landmarks], [boxes], [camera], self.device, select=pick,
+                       plates=[plates] if len(pick) > 1 else None)
         net = load_face_mesh(self.device)
         dist = np.array([camera.k1, camera.k2]) if (camera.k1 or camera.k2) else None
         state = initial_pose(fm, views)
         for n in range(p.passes):  # alternate: pose with the current appearance, then appearance at that pose
+            # after the first pass, several frames' poses also fit the plate to the painting (photometric)
+            photo = PHOTOMETRIC_WEIGHT if n > 0 and len(pick) > 1 else 0.0
             state, _, _ = fit_stages(fm, views, state, RIGID_STAGES, net, outer=p.rounds, iterations=p.iterations,
-                                     first_outer_on_landmarks=n == 0)
-            verts = fm.vertices(state.weights, state.rot, state.trans)[0].detach().cpu().numpy()
-            app = estimate_appearance(pixels, verts, fm.faces, camera.world_to_camera,
+                                     first_outer_on_landmarks=n == 0, photometric_weight=photo)
+            verts = fm.vertices(state.weights, state.rot, state.trans).detach().cpu().numpy()
+            app = estimate_appearance(plates[pick], verts, fm.faces, camera.world_to_camera,
                                       np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
-                                      distortion=dist, prior_weight=p.prior_weight)
+                                      distortion=dist, prior_weight=p.prior_weight,
+                                      smooth_steps=albedo_smoothing_steps(plate_noise))
             value = appearance_json(app.albedo, app.sh, tuple(app.background), hidden)
             value["noise"] = noise
             fm = _fit_model(model, JsonValue(value), self.device)
         value["frame"] = int(frame + self.frames.start)
+        value["frames"] = [int(f + self.frames.start) for f in pick]
+        value["plate_noise"] = plate_noise
         return {"appearance": JsonValue(value)}
 
 
@@ -472,7 +545,7 @@ class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 4
+    version = 5
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _FitParams
@@ -509,7 +582,7 @@ class Expression(Node):
     """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
 
     type_name = "fit.Expression"
-    version = 4
+    version = 5
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _ExpressionParams

@@ -203,3 +203,33 @@ def test_plates_that_do_not_match_the_cameras_are_refused(scene):
     with pytest.raises((InputError, NodeError), match="images.*expected 4 frames, found 2"):
         run_node(RigidPose, {"rounds": 1, "iterations": 2}, frames=range(FRAMES), landmarks=[marks], boxes=[boxes],
                  cameras=cams[:1], model=model, images=[short])
+
+
+@pytest.mark.slow
+def test_on_a_noisy_plate_the_appearance_paints_several_frames(tmp_path):
+    """Plate noise 0.03 (six times bench/fit.py's): fit.EstimateAppearance's defaults paint several
+    frames with pooled evidence and put the plate's noise in the renders, and the fit's
+    photometric weight grows with the noise; the rotation is then better than with one frame
+    painted and clean renders (true identity, 8 frames)."""
+    model = load_face_model()
+    cams = [Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")]
+    frames = 8
+    truth = random_face_parameters(model, frames, seed=0, distance_cm=DISTANCE)
+    seq, boxes, marks = _marks(render_plates(model, cams, truth, noise=0.03)[0])
+    np.savez(tmp_path / "identity.npz", identity=truth["identity"])
+    fitted = run_node(EstimateIdentity, {"mode": "file", "path": str(tmp_path / "identity.npz")}, frames=range(frames),
+                      landmarks=[marks], boxes=[boxes], cameras=cams[:1], model=model)["fitted_model"]
+    errors = {}
+    for name, params in (("one frame", {"frames_used": 1, "noise": 0}), ("defaults", {})):
+        app = run_node(EstimateAppearance, params, frames=range(frames), images=seq, landmarks=marks, boxes=boxes,
+                       camera=cams[0], model=fitted)["appearance"]
+        if name == "defaults":
+            assert len(app.value["frames"]) == frames and abs(app.value["plate_noise"] - 0.03) < 0.003
+            assert app.value["noise"] == app.value["plate_noise"]
+        common = dict(frames=range(frames), landmarks=[marks], boxes=[boxes], cameras=cams, model=fitted,
+                      appearance=app, images=[seq])
+        rigid = run_node(RigidPose, **common)["pose"]
+        pose = run_node(Expression, pose=rigid, **common)["fitted"].values
+        errors[name] = rotation_error_deg(pose[:, :9].reshape(-1, 3, 3), truth["rotation"])
+    print({k: v.round(2) for k, v in errors.items()})
+    assert np.median(errors["defaults"]) < 0.8 * np.median(errors["one frame"])

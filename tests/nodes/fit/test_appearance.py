@@ -1,0 +1,110 @@
+"""nodes.fit.appearance.estimate_appearance against renders of a known albedo and lighting: one
+frame, several frames (the light fixed in the world, the head turned), and a noisy plate whose
+albedo the evidence pooling (`smooth_steps`) makes closer to the truth; the noise-adaptive
+defaults of fit.EstimateAppearance and the fit's photometric weight."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nodegraph import Camera, JsonValue  # noqa: E402
+from nodes.fit.appearance import albedo_smoothing_steps, estimate_appearance  # noqa: E402
+from nodes.fit.nodes import (PHOTOMETRIC_REFERENCE_NOISE, _render_noise, painting_frame_count,  # noqa: E402
+                             photometric_weight_for)
+from nodes.io.face_model import load_face_model  # noqa: E402
+from nodes.render.appearance import default_albedo, hidden_faces  # noqa: E402
+from nodes.render.renderer import render_mesh, sh_from_lights  # noqa: E402
+
+SIZE = 256
+
+
+@pytest.fixture(scope="module")
+def scene():
+    face = load_face_model()
+    faces = np.delete(np.asarray(face.faces), hidden_faces(face.faces), axis=0)
+    cam = Camera.from_fov(SIZE, SIZE, 30.0)
+    tint = np.array([1.1, 0.9, 0.95], np.float32)
+    a0 = default_albedo(face)
+    albedo = np.clip(a0 * tint, 0, 1)
+    sh = sh_from_lights(np.array([0.3, 0.3, 0.3]), np.array([-0.7, 0.2, 1.0]), 0.7)
+    verts = []
+    for yaw in (0.0, -25.0, 25.0):
+        c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+        rot = np.diag([1.0, -1.0, -1.0]) @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        verts.append(face.neutral @ rot.T + np.array([0.0, 0.0, 55.0]))
+    verts = np.stack(verts).astype(np.float32)
+    with torch.no_grad():
+        out = render_mesh(torch.as_tensor(verts), faces, torch.as_tensor(cam.world_to_camera, dtype=torch.float32)[None]
+                          .expand(3, 4, 4), torch.tensor([[cam.fx, cam.fy, cam.cx, cam.cy]]).expand(3, 4), SIZE, SIZE,
+                          albedo=torch.as_tensor(albedo)[None], sh=torch.as_tensor(sh, dtype=torch.float32)[None],
+                          background=torch.tensor([0.2, 0.2, 0.2]), antialias=False)
+    plates = out.image.clamp(0, 1).numpy()
+    return dict(face=face, faces=faces, cam=cam, a0=a0, albedo=albedo, sh=sh, verts=verts, plates=plates)
+
+
+def _estimate(scene, frames, plates=None, **kw):
+    cam = scene["cam"]
+    plates = scene["plates"] if plates is None else plates
+    return estimate_appearance(plates[frames], scene["verts"][frames], scene["faces"], cam.world_to_camera,
+                               np.array([cam.fx, cam.fy, cam.cx, cam.cy]), scene["a0"], **kw)
+
+
+def _albedo_error(scene, app, mask=None) -> float:
+    """Mean absolute albedo error on the face's seen vertices, up to a scale per channel (albedo
+    times lighting is what a plate shows: the lighting takes a colour tint the albedo lacks)."""
+    face = scene["face"].groups["face"]
+    seen = np.zeros(len(app.albedo), bool)
+    seen[face] = True
+    seen &= app.seen if mask is None else mask
+    est, true = app.albedo[seen], scene["albedo"][seen]
+    k = (est * true).sum(0) / (est * est).sum(0)
+    return float(np.abs(est * k - true).mean())
+
+
+def test_one_frame_recovers_the_albedo_and_the_lighting(scene):
+    app = _estimate(scene, [0], prior_weight=0.01)
+    assert _albedo_error(scene, app) < 0.02
+    # the lighting's constant term, up to the same per-channel scale
+    face = scene["face"].groups["face"]
+    k = (app.albedo[face] * scene["albedo"][face]).sum(0) / (app.albedo[face] ** 2).sum(0)
+    assert np.allclose(app.sh[0] / k, scene["sh"][0], rtol=0.1), (app.sh[0] / k, scene["sh"][0])
+    assert np.allclose(app.background, 0.2, atol=1e-3)
+
+
+def test_several_frames_see_more_of_the_head_and_agree_with_one(scene):
+    one = _estimate(scene, [0], prior_weight=0.01)
+    three = _estimate(scene, [0, 1, 2], prior_weight=0.01)
+    assert three.seen.sum() > 1.1 * one.seen.sum()  # the turned head shows its sides
+    assert _albedo_error(scene, three) < 0.02
+    assert _albedo_error(scene, three, one.seen) < 0.02
+    with pytest.raises(ValueError, match="vertices"):
+        estimate_appearance(scene["plates"][:2], scene["verts"][:1], scene["faces"], scene["cam"].world_to_camera,
+                            np.ones(4), scene["a0"])
+
+
+def test_pooling_the_evidence_of_a_noisy_plate_brings_the_albedo_closer(scene):
+    noise = 0.03
+    rng = np.random.default_rng(0)
+    noisy = np.clip(scene["plates"] + rng.normal(0, noise, scene["plates"].shape), 0, 1).astype(np.float32)
+    steps = albedo_smoothing_steps(noise)
+    raw = _estimate(scene, [0], noisy, prior_weight=0.01)
+    pooled = _estimate(scene, [0], noisy, prior_weight=0.01, smooth_steps=steps)
+    e_raw, e_pooled = _albedo_error(scene, raw, raw.seen), _albedo_error(scene, pooled, raw.seen)
+    print(f"albedo error, noise {noise}: {e_raw:.4f} per pixel, {e_pooled:.4f} pooled ({steps} steps)")
+    assert e_pooled < 0.7 * e_raw, (e_pooled, e_raw)
+
+
+def test_the_defaults_adapt_to_the_plates_noise():
+    assert albedo_smoothing_steps(0.005) == 0 and painting_frame_count(0.005) == 1
+    assert 0 < albedo_smoothing_steps(0.02) < albedo_smoothing_steps(0.05) <= 64
+    assert painting_frame_count(0.02) == 4 and painting_frame_count(0.1) == 8
+    assert albedo_smoothing_steps(float("nan")) == 0 and painting_frame_count(float("nan")) == 1
+    assert _render_noise(-2, 0.005) == 0.0 and _render_noise(-2, 0.03) == 0.03
+    assert _render_noise(-1, 0.005) == 0.005 and _render_noise(0.02, 0.005) == 0.02
+    assert photometric_weight_for(500.0, None) == 500.0
+    assert photometric_weight_for(500.0, JsonValue({"plate_noise": PHOTOMETRIC_REFERENCE_NOISE / 2})) == 500.0
+    assert photometric_weight_for(500.0, JsonValue({"plate_noise": 6 * PHOTOMETRIC_REFERENCE_NOISE})) == \
+        pytest.approx(3000.0)
