@@ -324,7 +324,7 @@ def _painting_frames(landmarks: Landmarks2D, found: np.ndarray, count: int, excl
     return order[np.isfinite(gap[order])]
 
 
-def _render_noise(asked: float, plate_noise: float, above: float = 0.01) -> float:
+def _render_noise(asked: float, plate_noise: float, above: float = 0.02) -> float:
     """fit.EstimateAppearance's render noise: `asked` >= 0 as given, -1 the plate's, -2 the plate's above `above`."""
     if asked >= 0:
         return float(asked)
@@ -374,11 +374,12 @@ class EstimateAppearance(Node):
                             "appearance) and appearance (at that pose).")
         noise: float = Param(-2.0, ge=-2, description="Pixel noise (standard deviation, linear) added to the fit's "
                              "renders so that the network reads them as it reads a noisy plate; -1 = the plate's, "
-                             "estimated (fit.appearance.estimate_noise); -2 = the plate's where it is above 0.01 "
-                             "(where the painted albedo is pooled and so carries little of it), else none. On a "
-                             "clean plate an albedo painted from one frame already carries the plate's noise and "
-                             "adding it hurts (bench/fit.py, seed 0, noise 0.005: 1.6 -> 2.2 deg); on a noisy one it "
-                             "helps (noise 0.03: 3.7 -> 2.9 deg).")
+                             "estimated (fit.appearance.estimate_noise); -2 = the plate's where it is above 0.02 "
+                             "(where the painted albedo is pooled and so carries little of it), else none. "
+                             "bench/fit.py: on a clean plate an albedo painted from one frame already carries the "
+                             "plate's noise and adding it hurts (seed 0, noise 0.005: 1.6 -> 2.2 deg); at noise "
+                             "0.015 it hurts too (seed 1: 1.4 -> 1.9); at 0.03 it helps (seed 0: 3.7 -> 2.9, seed 2: "
+                             "3.6 -> 3.1).")
 
     images = In(ImageSequence, doc="Plate of the first camera.")
     landmarks = In(Landmarks2D, doc="(F, 68, 2) plate landmarks of the first camera, pixels.")

@@ -102,7 +102,7 @@ def test_the_defaults_adapt_to_the_plates_noise():
     assert 0 < albedo_smoothing_steps(0.02) < albedo_smoothing_steps(0.05) <= 64
     assert painting_frame_count(0.02) == 4 and painting_frame_count(0.1) == 8
     assert albedo_smoothing_steps(float("nan")) == 0 and painting_frame_count(float("nan")) == 1
-    assert _render_noise(-2, 0.005) == 0.0 and _render_noise(-2, 0.03) == 0.03
+    assert _render_noise(-2, 0.015) == 0.0 and _render_noise(-2, 0.03) == 0.03
     assert _render_noise(-1, 0.005) == 0.005 and _render_noise(0.02, 0.005) == 0.02
     assert photometric_weight_for(500.0, None) == 500.0
     assert photometric_weight_for(500.0, JsonValue({"plate_noise": PHOTOMETRIC_REFERENCE_NOISE / 2})) == 500.0
