@@ -85,9 +85,11 @@ def _check_views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], camer
 
 def _linear_rgb(images: ImageSequence, frames: Any = slice(None)) -> np.ndarray:
     """(F', H, W, 3) linear colour of the frames asked for (one channel repeated for grey plates)."""
-    plate = images.to_linear()
+    pixels = images.pixels[frames]
+    single = pixels.ndim == images.pixels.ndim - 1  # one frame asked for
+    plate = dataclasses.replace(images, pixels=pixels[None] if single else pixels).to_linear()  # these frames only
     idx = plate.colour_channels()
-    pix = plate.pixels[frames]
+    pix = plate.pixels[0] if single else plate.pixels
     return pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
 
 
@@ -126,7 +128,7 @@ def _checked_plates(images: list[ImageSequence], cameras: list[Camera], frames: 
 
 def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera], device: str,
            select: np.ndarray | None = None, allow_mesh: bool = False,
-           plates: list[np.ndarray] | None = None) -> Any:
+           plates: list[np.ndarray] | None = None, plates_selected: bool = False) -> Any:
     """FitViews of the landmarks: targets (F, C, 68, 2), or with `allow_mesh` and 468-point
     landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`. With
     `plates` (`_checked_plates`), their crops too (for the photometric term)."""
@@ -151,7 +153,8 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
     box = np.where(seen[..., None], box, np.array([0.0, 0.0, 1.0, 1.0], np.float32))
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
     dist = np.array([[c.k1, c.k2] for c in cameras])
-    crops = _plate_crops(plates, box, seen, frames, device) if plates else None
+    crops = _plate_crops(plates, box, seen, np.arange(len(frames)) if plates_selected else frames, device) \
+        if plates else None
     return FitViews(t(pts), t(box), torch.as_tensor(seen, device=device),
                     t(np.stack([c.world_to_camera for c in cameras])),
                     t([[c.fx, c.fy, c.cx, c.cy] for c in cameras]), t(dist) if np.abs(dist).max() > 0 else None,
@@ -414,18 +417,18 @@ class EstimateAppearance(Node):
         frame = _near_neutral_frame(landmarks, found) if p.frame < 0 else p.frame - self.frames.start
         if not 0 <= frame < len(found) or not found[frame]:
             raise InputError("landmarks", f"expected a face in frame {p.frame}, found none")
-        plates = _linear_rgb(images)
-        plate_noise = estimate_noise(plates[frame])
+        plate_noise = estimate_noise(_linear_rgb(images, frame))
         noise = _render_noise(p.noise, plate_noise)
         count = p.frames_used or painting_frame_count(plate_noise)
         pick = np.concatenate([[frame], _painting_frames(landmarks, found, count - 1, exclude=frame)]).astype(int)
+        plates = _linear_rgb(images, pick)  # only the frames painted (a shot's plates can be gigabytes)
         from ..landmarks.network import load_face_mesh
         from .appearance import albedo_smoothing_steps, estimate_appearance
         from .solve import RIGID_STAGES, fit_stages, initial_pose
 
         fm = _fit_model(model, None, self.device)
         views = _views([landmarks], [boxes], [camera], self.device, select=pick,
-                       plates=[plates] if len(pick) > 1 else None)
+                       plates=[plates] if len(pick) > 1 else None, plates_selected=True)
         net = load_face_mesh(self.device)
         dist = np.array([camera.k1, camera.k2]) if (camera.k1 or camera.k2) else None
         state = initial_pose(fm, views)
@@ -435,7 +438,7 @@ class EstimateAppearance(Node):
             state, _, _ = fit_stages(fm, views, state, RIGID_STAGES, net, outer=p.rounds, iterations=p.iterations,
                                      first_outer_on_landmarks=n == 0, photometric_weight=photo)
             verts = fm.vertices(state.weights, state.rot, state.trans).detach().cpu().numpy()
-            app = estimate_appearance(plates[pick], verts, fm.faces, camera.world_to_camera,
+            app = estimate_appearance(plates, verts, fm.faces, camera.world_to_camera,
                                       np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
                                       distortion=dist, prior_weight=p.prior_weight,
                                       smooth_steps=albedo_smoothing_steps(plate_noise))

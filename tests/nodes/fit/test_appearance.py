@@ -108,3 +108,17 @@ def test_the_defaults_adapt_to_the_plates_noise():
     assert photometric_weight_for(500.0, JsonValue({"plate_noise": PHOTOMETRIC_REFERENCE_NOISE / 2})) == 500.0
     assert photometric_weight_for(500.0, JsonValue({"plate_noise": 6 * PHOTOMETRIC_REFERENCE_NOISE})) == \
         pytest.approx(3000.0)
+
+
+def test_linear_plates_of_some_frames_are_those_of_the_whole_shot():
+    from nodegraph import ImageSequence
+    from nodes.fit.nodes import _linear_rgb
+
+    rng = np.random.default_rng(0)
+    seq = ImageSequence(rng.uniform(0, 1, (5, 8, 9, 3)).astype(np.float32), colour_space="srgb")
+    full = seq.to_linear().pixels
+    assert np.allclose(_linear_rgb(seq), full)
+    assert np.allclose(_linear_rgb(seq, 2), full[2])
+    assert np.allclose(_linear_rgb(seq, np.array([3, 1])), full[[3, 1]])
+    grey = ImageSequence(rng.uniform(0, 1, (2, 4, 4, 1)).astype(np.float32), channels=["Y"], colour_space="srgb")
+    assert _linear_rgb(grey, 1).shape == (4, 4, 3) and _linear_rgb(grey).shape == (2, 4, 4, 3)
