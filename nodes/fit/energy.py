@@ -147,6 +147,39 @@ def project_views(points: Tensor, world_to_camera: Tensor, intrinsics: Tensor, d
                                 None if distortion is None else distortion[None])
 
 
+def project_views_jacobian(points: Tensor, world_to_camera: Tensor, intrinsics: Tensor,
+                           distortion: Tensor | None) -> tuple[Tensor, Tensor]:
+    """`project_views` and its derivative in the world point, by hand (pinhole + radial k1, k2).
+
+    Args:
+        points: (B, C, L, 3) world points, cm; world_to_camera (C, 4, 4); intrinsics (C, 4);
+            distortion (C, 2) or None.
+    Returns:
+        (B, C, L, 2) pixels and (B, C, L, 2, 3) d pixel / d world point, pixels per cm.
+    """
+    rot = world_to_camera[:, :3, :3]  # (C, 3, 3)
+    cam = points @ rot.transpose(-1, -2) + world_to_camera[:, None, :3, 3]
+    z = cam[..., 2]
+    inv = 1.0 / z
+    x, y = cam[..., 0] * inv, cam[..., 1] * inv
+    zero = torch.zeros_like(z)
+    dx = torch.stack([inv, zero, -x * inv], -1)  # d x / d cam, (B, C, L, 3)
+    dy = torch.stack([zero, inv, -y * inv], -1)
+    if distortion is not None:
+        k1, k2 = distortion[:, None, 0], distortion[:, None, 1]  # (C, 1)
+        r2 = x * x + y * y
+        factor = 1.0 + r2 * (k1 + k2 * r2)
+        slope = 2.0 * (k1 + 2.0 * k2 * r2)  # d factor / d (x or y), over x or y
+        dr2 = x[..., None] * dx + y[..., None] * dy  # (1/2) d r2 / d cam
+        dx, dy = (factor[..., None] * dx + (x * slope)[..., None] * dr2,
+                  factor[..., None] * dy + (y * slope)[..., None] * dr2)
+        x, y = x * factor, y * factor
+    fx, fy, cx, cy = (intrinsics[:, None, k] for k in range(4))  # (C, 1)
+    pix = torch.stack([fx * x + cx, fy * y + cy], -1)
+    jac = torch.stack([fx[..., None] * dx, fy[..., None] * dy], -2) @ rot[:, None]  # (B, C, L, 2, 3)
+    return pix, jac
+
+
 def landmark_energy(predicted: Tensor, target: Tensor, scale: Tensor, weights: Tensor, *,
                     edge_weight: float = 1.0) -> Tensor:
     """E1 + mu E2 of the module docstring, per frame.

@@ -27,7 +27,7 @@ from torch import Tensor
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import axis_angle_to_rotmat, landmark_weights
 from .photometric import PhotoSamples, PhotoTerm
-from .solve import (_FORWARD_AD_LOCK, PoseState, _anchored, _render_anchors, _stage_residuals, jaw_shapes,
+from .solve import (PoseState, _anchored, _render_anchors, _stage_jacobian, _stage_residuals, jaw_shapes,
                     mouth_shapes)
 from .views import Anchors, FitModel, FitViews, at_anchors, landmark_anchors
 
@@ -72,15 +72,14 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
 
     def jacobians(rot0: Tensor, weights0: Tensor, x: Tensor, ident: Tensor) -> tuple[Tensor, Tensor]:
         """(B, M, P) in the frames' unknowns and (B, M, I) in the identity, at omega = 0."""
-        with _FORWARD_AD_LOCK:
-            jx = torch.func.jacfwd(lambda d: landmark_fn(rot0, weights0, ident)(x + d[None]))(
-                torch.zeros(n_p, dtype=dt, device=dev))
-            ji = torch.func.jacfwd(lambda d: landmark_fn(rot0, weights0, ident + d)(x))(
-                torch.zeros(n_i, dtype=dt, device=dev))
-            if not use_photo:
-                return jx, ji
-            lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
-            _, jp = photo_term(weights0).jacobian(rot0, x[:, 3:6], lin)
+        shape = torch.einsum("i,bclid->bcld", ident, id_d)
+        jac = _stage_jacobian(neutral + shape, deltas, views, rot0, weights0, shapes, w_lm, x, prior=prior,
+                              edge_weight=edge_weight, rigid_prior=None, rigid_prior_weight=0.0, extra=id_d)
+        jx, ji = jac[:, :, :n_p], jac[:, :, n_p:]
+        if not use_photo:
+            return jx, ji
+        lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
+        _, jp = photo_term(weights0).jacobian(rot0, x[:, 3:6], lin)
         return torch.cat([jx, jp[:, :, :n_p]], 1), torch.cat([ji, jp[:, :, n_p:]], 1)
 
     def total(r: Tensor, ident: Tensor) -> Tensor:

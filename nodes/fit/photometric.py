@@ -23,13 +23,13 @@ Torch is imported at the top: import this module from node `run()` methods only.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from .energy import axis_angle_to_rotmat, project_views
+from .energy import axis_angle_to_rotmat, project_views, project_views_jacobian
 from .views import FitModel, FitViews, _barycentrics, at_anchors, image_to_crop
 
 __all__ = ["PHOTO_UNIT", "PhotoSamples", "gaussian_blur", "sample_bilinear", "photometric_samples",
@@ -78,15 +78,16 @@ def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     return t.reshape(n, c, h, w).permute(0, 2, 3, 1)
 
 
-def sample_bilinear(images: Tensor, xy: Tensor) -> Tensor:
+def sample_bilinear(images: Tensor, xy: Tensor, *, gradient: bool = False) -> Tensor | tuple[Tensor, Tensor]:
     """Bilinear samples of images at pixel coordinates (centres at integers), differentiable in xy.
 
     Written with gathers (not `grid_sample`) so that forward-mode autodiff goes through it.
 
     Args:
         images: (N, H, W, C); xy: (N, L, 2) x, y pixel coordinates (clamped into the image).
+        gradient: also return the samples' derivative in x and y (0 where clamped).
     Returns:
-        (N, L, C).
+        (N, L, C), and with `gradient` (N, L, C, 2) per pixel.
     """
     n, h, w, c = images.shape
     x = xy[..., 0].clamp(0.0, w - 1.0)
@@ -101,9 +102,17 @@ def sample_bilinear(images: Tensor, xy: Tensor) -> Tensor:
     def at(yy: Tensor, xx: Tensor) -> Tensor:
         return torch.gather(flat, 1, (yy * w + xx)[..., None].expand(*xx.shape, c))
 
-    top = at(yi, xi) * (1 - fx) + at(yi, xi + dx) * fx
-    bottom = at(yi + dy, xi) * (1 - fx) + at(yi + dy, xi + dx) * fx
-    return top * (1 - fy) + bottom * fy
+    c00, c01, c10, c11 = at(yi, xi), at(yi, xi + dx), at(yi + dy, xi), at(yi + dy, xi + dx)
+    top = c00 + (c01 - c00) * fx
+    bottom = c10 + (c11 - c10) * fx
+    value = top + (bottom - top) * fy
+    if not gradient:
+        return value
+    inside_x = ((xy[..., 0] >= 0) & (xy[..., 0] <= w - 1) & (w > 1)).to(images.dtype)[..., None]
+    inside_y = ((xy[..., 1] >= 0) & (xy[..., 1] <= h - 1) & (h > 1)).to(images.dtype)[..., None]
+    d_x = ((c01 - c00) * (1 - fy) + (c11 - c10) * fy) * inside_x
+    d_y = (bottom - top) * inside_y
+    return value, torch.stack([d_x, d_y], -1)
 
 
 def photometric_samples(model: FitModel, views: FitViews, image: Tensor, triangle: Tensor, pix: Tensor,
@@ -177,29 +186,30 @@ def photometric_residuals(samples: PhotoSamples, points: Tensor, views: FitViews
     return (r * (samples.weight * float(weight))[..., None].sqrt()).flatten(1)
 
 
-def photometric_point_jacobian(samples: PhotoSamples, world: Tensor, views: FitViews, weight: float,
-                               project: Callable[[Tensor], Tensor]) -> tuple[Tensor, Tensor]:
+def photometric_point_jacobian(samples: PhotoSamples, world: Tensor, views: FitViews,
+                               weight: float) -> tuple[Tensor, Tensor]:
     """Residuals and their derivatives with respect to each sample's world point.
 
-    A sample's residual depends on its own point only, so forward-mode autodiff along one
-    displacement shared by all points (3 tangents) gives every sample's 3 x 3 Jacobian; a
-    caller chains it with the points' derivatives in its unknowns (a matrix product per
-    sample), instead of pushing all unknowns through the sampling.
+    A sample's residual depends on its own point only: its 3 x 3 Jacobian is the plate's
+    bilinear gradient (`sample_bilinear(gradient=True)`) times the crop's scale times the
+    projection's derivative (`project_views_jacobian`), chained by hand; a caller chains it
+    with the points' derivatives in its unknowns (a matrix product per sample).
 
     Args:
         samples: from `photometric_samples`; world: (B, C, N, 3) the samples' world points, cm.
         views, weight: as in `photometric_residuals`.
-        project: (B, C, N, 3) world points -> (B, C, N, 2) image pixels.
     Returns:
         residuals (B, C, N, 3) and their Jacobian (B, C, N, 3, 3) (colour channel, x y z).
     """
     b, c, m = samples.weight.shape
-
-    def res(d: Tensor) -> Tensor:
-        return photometric_residuals(samples, project(world + d), views, weight).reshape(b, c, m, 3)
-
-    zero = torch.zeros(3, dtype=world.dtype, device=world.device)
-    return res(zero), torch.func.jacfwd(res)(zero)
+    pix, d_pix = project_views_jacobian(world, views.world_to_camera, views.intrinsics, views.distortion)
+    crop = image_to_crop(pix, views.boxes, samples.size)
+    k = ((views.boxes[..., 2] - views.boxes[..., 0]) / samples.size)[..., None, None, None]  # crop px per px
+    seen, grad = sample_bilinear(samples.plates, crop.reshape(b * c, m, 2), gradient=True)
+    scale = (samples.weight * float(weight)).sqrt()[..., None] / PHOTO_UNIT  # (B, C, N, 1)
+    r = (seen.reshape(b, c, m, 3) - samples.colour) * scale
+    jac = grad.reshape(b, c, m, 3, 2) @ (d_pix / k)  # (B, C, N, 3, 3)
+    return r, jac * scale[..., None]
 
 
 class PhotoTerm:
@@ -246,8 +256,7 @@ class PhotoTerm:
     def jacobian(self, rot: Tensor, trans: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
         """Residuals (B, M) and Jacobian (B, M, 6 + S) in (omega, t, active) at omega = 0."""
         q = self._local(active) @ rot[:, None].transpose(-1, -2)  # (B, C, N, 3) rotated, not translated
-        r, jp = photometric_point_jacobian(self.samples, q + trans[:, None, None, :], self.views, self.weight,
-                                           self._project)
+        r, jp = photometric_point_jacobian(self.samples, q + trans[:, None, None, :], self.views, self.weight)
         x, y, z = q.unbind(-1)
         zero = torch.zeros_like(x)
         neg_skew = torch.stack([zero, z, -y, -z, zero, x, y, -x, zero], -1).reshape(*q.shape, 3)  # -[q]x

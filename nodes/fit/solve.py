@@ -29,7 +29,6 @@ Torch is imported at the top: import this module from node `run()` methods only.
 from __future__ import annotations
 
 import dataclasses
-import threading
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
@@ -39,17 +38,13 @@ from torch import Tensor
 
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
-                     project_views)
+                     project_views, project_views_jacobian)
 from .photometric import PhotoSamples, PhotoTerm, photometric_samples
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, crop_to_image, landmark_anchors,
                     network_points, render_crops)
 
 __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
            "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]
-
-_FORWARD_AD_LOCK = threading.Lock()
-"""Serializes `torch.func.jacfwd`: its dual levels are process-wide, so two threads (the threads
-scheduler running two chunks) would corrupt each other's ("forward AD level with an invalid index")."""
 
 BOUND_PENALTY = 1e4
 """Weight of the quadratic penalty that keeps expression weights in [0, 1]."""
@@ -197,6 +192,72 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
     return fn
 
 
+def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tensor, base_weights: Tensor,
+                    shapes: Tensor, w_lm: Tensor, x: Tensor, *, prior: float, edge_weight: float,
+                    rigid_prior: PoseState | None, rigid_prior_weight: float,
+                    extra: Tensor | None = None) -> Tensor:
+    """The Jacobian of `_stage_residuals`' function at x (B, 6 + S) with omega = 0, by hand.
+
+    The landmark rows chain `project_views_jacobian` with the anchored points' derivatives:
+    `-[R q]_x` in omega, the identity in t, `R d_s` in active weight s (q the anchored local
+    point, d_s its shape). The bound penalty's rows follow autodiff's convention at the bounds
+    (a weight exactly at 0 counts as below it).
+
+    Args:
+        neutral, deltas, views, rot0, base_weights, shapes, w_lm, prior, edge_weight,
+            rigid_prior, rigid_prior_weight: as in `_stage_residuals`.
+        x: the unknowns (omega = 0).
+        extra: (B, C, L, X, 3) the anchored points' local derivatives in X further linear
+            unknowns (the identity), or None.
+    Returns:
+        (B, M, 6 + S (+ X)).
+    """
+    a, b = EDGES_68[:, 0], EDGES_68[:, 1]
+    bsz, n_w = x.shape[0], len(shapes)
+    dt, dev = x.dtype, x.device
+    w3 = w_lm if w_lm.ndim == 3 else w_lm.expand(*views.target.shape[:3])  # (B, C, L)
+    sw = w3.clamp_min(0).sqrt()[..., None, None]
+    weights = base_weights.index_copy(1, shapes, x[:, 6:]) if n_w else base_weights
+    local = neutral + torch.einsum("bk,bclkd->bcld", weights, deltas)
+    rotated = local @ rot0[:, None].transpose(-1, -2)  # (B, C, L, 3)
+    _, d_pix = project_views_jacobian(rotated + x[:, None, None, 3:6], views.world_to_camera, views.intrinsics,
+                                      views.distortion)
+    px, py, pz = rotated.unbind(-1)
+    zero = torch.zeros_like(px)
+    cols = [torch.stack([zero, pz, -py, -pz, zero, px, py, -px, zero], -1).reshape(*rotated.shape, 3),
+            torch.eye(3, dtype=dt, device=dev).expand(*rotated.shape, 3)]
+    if n_w:
+        cols.append(torch.einsum("bij,bclsj->bclis", rot0, deltas[:, :, :, shapes]))
+    if extra is not None:
+        cols.append(torch.einsum("bij,bclxj->bclix", rot0, extra))
+    d_world = torch.cat(cols, -1)  # (B, C, L, 3, P)
+    n_all = d_world.shape[-1]
+    jac = -views.scale[..., None, None, None] * (d_pix @ d_world)  # (B, C, L, 2, P): r = (target - pred) scale
+    parts = [(jac * sw).reshape(bsz, -1, n_all)]
+    if edge_weight > 0:
+        ew = ((w3[..., a] > 0) & (w3[..., b] > 0)).to(dt)[..., None, None] * float(edge_weight) ** 0.5
+        parts.append(((jac[:, :, b] - jac[:, :, a]) * ew).reshape(bsz, -1, n_all))
+    if n_w:
+        rows = torch.zeros(bsz, n_w, n_all, dtype=dt, device=dev)
+        diag = torch.arange(n_w, device=dev)
+        rows[:, diag, 6 + diag] = float(prior) ** 0.5
+        parts.append(rows)
+        active = x[:, 6:]
+        side = (active >= 1).to(dt) - (active <= 0).to(dt)
+        bound = torch.zeros(bsz, n_w, n_all, dtype=dt, device=dev)
+        bound[:, diag, 6 + diag] = side * BOUND_PENALTY ** 0.5
+        parts.append(bound)
+    if rigid_prior is not None and rigid_prior_weight > 0:
+        k = float(rigid_prior_weight) ** 0.5
+        rows = torch.zeros(bsz, 12, n_all, dtype=dt, device=dev)
+        rows[:, torch.arange(3), 3 + torch.arange(3)] = k
+        gens = torch.zeros(3, 3, 3, dtype=dt, device=dev)  # [e_j]_x
+        gens[0, 2, 1], gens[0, 1, 2], gens[1, 0, 2], gens[1, 2, 0], gens[2, 1, 0], gens[2, 0, 1] = 1, -1, 1, -1, 1, -1
+        rows[:, 3:, :3] = torch.einsum("jik,bkl->bilj", gens, rot0).reshape(bsz, 9, 3) * (k / 2 ** 0.5)
+        parts.append(rows)
+    return torch.cat(parts, 1)
+
+
 def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors, state: PoseState, *,
                 prior: float, edge_weight: float, eyelid_weight: float, iterations: int,
                 rigid_prior: PoseState | None = None, rigid_prior_weight: float = 0.0,
@@ -204,7 +265,8 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     """Minimize one stage's energy over its unknowns (all frames at once; frames are independent).
 
     The energy is a sum of squares (`_stage_residuals`), minimized per frame by
-    Levenberg-Marquardt: Jacobian by forward-mode autodiff, damping `lambda diag(J^T J)`
+    Levenberg-Marquardt: Jacobian chained by hand (`_stage_jacobian`, the photometric
+    term's `PhotoTerm.jacobian`; tested against forward-mode autodiff), damping `lambda diag(J^T J)`
     (lambda x 0.3 after a step that lowers the frame's energy, x 10 and retry otherwise), the
     rotation re-linearized after every accepted step (`R <- exp([omega]) R`). Much cheaper than
     L-BFGS here: the unknowns are few (6 + the active shapes) and each iteration costs one
@@ -263,12 +325,13 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
             return torch.cat([r, term.residuals(xa[:, :3], rot, xa[:, 3:6], xa[:, 6:])], 1) if term else r
 
         def jacobian(xf: Tensor) -> Tensor:
-            with _FORWARD_AD_LOCK:  # torch's forward-AD levels are process-wide: one jacfwd at a time
-                jac = torch.func.jacfwd(lambda d: fn(full(xf + d[None], x0)))(torch.zeros(n_p, dtype=dt, device=dev))
-                if term is None:
-                    return jac
-                xa = full(xf, x0)
-                _, jac_p = term.jacobian(rot, xa[:, 3:6], xa[:, 6:])
+            xa = full(xf, x0)
+            jac = _stage_jacobian(neutral, deltas, views, rot, weights, shapes, w_lm, xa, prior=prior,
+                                  edge_weight=edge_weight, rigid_prior=rigid_prior,
+                                  rigid_prior_weight=rigid_prior_weight)[:, :, free_idx]
+            if term is None:
+                return jac
+            _, jac_p = term.jacobian(rot, xa[:, 3:6], xa[:, 6:])
             return torch.cat([jac, jac_p[:, :, free_idx]], 1)
 
         return residuals, jacobian, x0[:, free_idx]

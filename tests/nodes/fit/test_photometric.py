@@ -23,6 +23,21 @@ def test_sample_bilinear_matches_grid_sample():
     torch.testing.assert_close(ours, ref.permute(0, 2, 1), atol=1e-6, rtol=0)
 
 
+def test_sample_bilinear_gradient_matches_forward_autodiff_and_is_zero_where_clamped():
+    g = torch.Generator().manual_seed(3)
+    images = torch.rand(2, 9, 13, 3, generator=g)
+    xy = torch.rand(2, 40, 2, generator=g) * torch.tensor([12.0, 8.0])
+    xy[:, :5, 0] = torch.tensor([-2.0, 13.5, 20.0, -0.5, 12.5])  # outside in x: clamped
+    value, grad = sample_bilinear(images, xy, gradient=True)
+    torch.testing.assert_close(value, sample_bilinear(images, xy))
+    for k in range(2):
+        tangent = torch.zeros_like(xy)
+        tangent[..., k] = 1.0
+        _, ref = torch.func.jvp(lambda p: sample_bilinear(images, p), (xy,), (tangent,))
+        torch.testing.assert_close(grad[..., k], ref, atol=1e-5, rtol=0)
+    assert float(grad[:, :5, :, 0].abs().max()) == 0.0 and float(grad[:, 5:, :, 0].abs().max()) > 0.1
+
+
 def test_gaussian_blur_keeps_a_constant_and_smooths_noise():
     g = torch.Generator().manual_seed(1)
     flat = torch.full((1, 20, 20, 3), 0.3)
@@ -31,12 +46,12 @@ def test_gaussian_blur_keeps_a_constant_and_smooths_noise():
     assert gaussian_blur(noise, 1.0).std() < 0.5 * noise.std()
 
 
-def _term(b: int = 2, n: int = 30, s: int = 5) -> tuple[PhotoTerm, torch.Tensor]:
+def _term(b: int = 2, n: int = 30, s: int = 5, distortion: torch.Tensor | None = None) -> tuple[PhotoTerm, torch.Tensor]:
     g = torch.Generator().manual_seed(2)
     size = 64
     views = FitViews(target=torch.zeros(b, 1, 68, 2), boxes=torch.tensor([[[40.0, 30.0, 168.0, 158.0]]]).repeat(b, 1, 1),
                      seen=torch.ones(b, 1, dtype=torch.bool), world_to_camera=torch.eye(4)[None],
-                     intrinsics=torch.tensor([[300.0, 300.0, 100.0, 90.0]]), distortion=None,
+                     intrinsics=torch.tensor([[300.0, 300.0, 100.0, 90.0]]), distortion=distortion,
                      image_size=torch.tensor([[200.0, 200.0]]))
     plates = gaussian_blur(torch.rand(b, size, size, 3, generator=g), 2.0)
     samples = PhotoSamples(vertices=torch.zeros(b, 1, n, 3, dtype=torch.long), bary=torch.ones(b, 1, n, 3) / 3,
@@ -48,8 +63,9 @@ def _term(b: int = 2, n: int = 30, s: int = 5) -> tuple[PhotoTerm, torch.Tensor]
     return PhotoTerm(samples, views, 500.0, local0, basis), rot0
 
 
-def test_photo_term_jacobian_matches_forward_autodiff():
-    term, rot0 = _term()
+@pytest.mark.parametrize("distortion", [None, torch.tensor([[-0.3, 0.2]])])
+def test_photo_term_jacobian_matches_forward_autodiff(distortion):
+    term, rot0 = _term(distortion=distortion)
     b, s = rot0.shape[0], term.basis.shape[-1]
     trans = torch.tensor([[0.5, -0.3, 60.0], [-1.0, 0.2, 65.0]])
     active = torch.full((b, s), 0.2)
