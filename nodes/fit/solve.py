@@ -250,7 +250,8 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
     if rigid_prior is not None and rigid_prior_weight > 0:
         k = float(rigid_prior_weight) ** 0.5
         rows = torch.zeros(bsz, 12, n_all, dtype=dt, device=dev)
-        rows[:, torch.arange(3), 3 + torch.arange(3)] = k
+        three = torch.arange(3, device=dev)
+        rows[:, three, 3 + three] = k
         gens = torch.zeros(3, 3, 3, dtype=dt, device=dev)  # [e_j]_x
         gens[0, 2, 1], gens[0, 1, 2], gens[1, 0, 2], gens[1, 2, 0], gens[2, 1, 0], gens[2, 0, 1] = 1, -1, 1, -1, 1, -1
         rows[:, 3:, :3] = torch.einsum("jik,bkl->bilj", gens, rot0).reshape(bsz, 9, 3) * (k / 2 ** 0.5)
