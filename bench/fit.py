@@ -40,8 +40,6 @@ def main() -> None:
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
     ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
     ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
-    ap.add_argument("--similar-view", type=float, default=None, help="fit.EstimateIdentity similar_view (radians, "
-                    "0 = off)")
     ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
     ap.add_argument("--photometric", type=float, default=None, help="fit.RigidPose / fit.Expression "
                     "photometric_weight (0 = landmarks only)")
@@ -74,8 +72,6 @@ def main() -> None:
         ident_params["identity_prior"] = args.identity_prior
     if args.mesh_weight is not None:
         ident_params["mesh_weight"] = args.mesh_weight
-    if args.similar_view is not None:
-        ident_params["similar_view"] = args.similar_view
     if args.identity_iterations is not None:
         ident_params["iterations"] = args.identity_iterations
     if args.identity == "truth":

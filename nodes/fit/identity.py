@@ -31,38 +31,14 @@ from .solve import (PoseState, _anchored, _render_anchors, _stage_jacobian, _sta
                     mouth_shapes)
 from .views import Anchors, FitModel, FitViews, at_anchors, landmark_anchors
 
-__all__ = ["solve_identity", "view_redundancy_weights"]
-
-
-def view_redundancy_weights(state: PoseState, world_to_camera: Tensor, sigma: float) -> Tensor:
-    """(B,) weights that count frames seeing the head from the same direction as one frame.
-
-    Frames of a static head (a locked-off talking head, a pan over a photo) show the same
-    shape again and again; their errors (the network's, the model's) repeat with them, so
-    summing their energies would count one view's evidence B times against the identity's
-    prior. Frame f gets `1 / sum_g exp(-(theta_fg / sigma)^2)`, theta_fg the angle between
-    the directions from which frames f and g see the head (model frame, first camera): 1 for
-    a frame unlike the others, 1 / B for B frames alike.
-
-    Args:
-        state: the frames' rigid poses; world_to_camera: (C, 4, 4), camera 0 is used.
-        sigma: radians.
-    """
-    e = world_to_camera[0].to(state.rot.dtype)
-    centre = -(e[:3, :3].T @ e[:3, 3])  # the camera's centre, world
-    view = ((centre - state.trans)[:, None, :] @ state.rot)[:, 0]  # R^T (c - t), model frame
-    view = view / view.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    theta = torch.arccos((view @ view.T).clamp(-1.0, 1.0))
-    return 1.0 / torch.exp(-(theta / sigma) ** 2).sum(1)
+__all__ = ["solve_identity"]
 
 
 def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, anchors: Anchors, state: PoseState,
                    identity: Tensor, w_lm: Tensor, *, prior: float, identity_prior: float, edge_weight: float,
                    iterations: int, photo: PhotoSamples | None = None,
-                   photo_weight: float = 0.0, frame_weights: Tensor | None = None) -> tuple[PoseState, Tensor]:
+                   photo_weight: float = 0.0) -> tuple[PoseState, Tensor]:
     """Levenberg-Marquardt on (pose, jaw and mouth weights) per frame and the shared identity.
-
-    `frame_weights` (B,) scale each frame's energy (None: 1).
 
     Returns:
         the frames' states and the identity (I,).
@@ -74,8 +50,6 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
     shapes = torch.as_tensor(sorted(set(jaw_shapes(model.names)) | set(mouth_shapes(model.names))), device=dev)
     n_p, n_i = 6 + len(shapes), identity.shape[0]
     use_photo = photo is not None and photo_weight > 0
-    frame_scale = torch.ones(b, dtype=dt, device=dev) if frame_weights is None else \
-        frame_weights.to(dev, dt).clamp_min(0).sqrt()
     if use_photo:  # the photometric unknowns per frame: the active weights, then the identity
         p_basis = torch.cat([photo.deltas[:, :, :, shapes].transpose(-1, -2),
                              at_anchors(identity_deltas, photo.vertices, photo.bary).transpose(-1, -2)], -1)
@@ -91,21 +65,22 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
     def residuals(rot0: Tensor, weights0: Tensor, x: Tensor, ident: Tensor) -> Tensor:
         """(B, M) residuals of the frames (without the identity prior) at x (B, P), ident (I,)."""
         r = landmark_fn(rot0, weights0, ident)(x)
-        if use_photo:
-            lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
-            r = torch.cat([r, photo_term(weights0).residuals(x[:, :3], rot0, x[:, 3:6], lin)], 1)
-        return r * frame_scale[:, None]
+        if not use_photo:
+            return r
+        lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
+        return torch.cat([r, photo_term(weights0).residuals(x[:, :3], rot0, x[:, 3:6], lin)], 1)
 
     def jacobians(rot0: Tensor, weights0: Tensor, x: Tensor, ident: Tensor) -> tuple[Tensor, Tensor]:
         """(B, M, P) in the frames' unknowns and (B, M, I) in the identity, at omega = 0."""
         shape = torch.einsum("i,bclid->bcld", ident, id_d)
         jac = _stage_jacobian(neutral + shape, deltas, views, rot0, weights0, shapes, w_lm, x, prior=prior,
                               edge_weight=edge_weight, rigid_prior=None, rigid_prior_weight=0.0, extra=id_d)
-        if use_photo:
-            lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
-            jac = torch.cat([jac, photo_term(weights0).jacobian(rot0, x[:, 3:6], lin)[1]], 1)
-        jac = jac * frame_scale[:, None, None]
-        return jac[:, :, :n_p], jac[:, :, n_p:]
+        jx, ji = jac[:, :, :n_p], jac[:, :, n_p:]
+        if not use_photo:
+            return jx, ji
+        lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
+        _, jp = photo_term(weights0).jacobian(rot0, x[:, 3:6], lin)
+        return torch.cat([jx, jp[:, :, :n_p]], 1), torch.cat([ji, jp[:, :, n_p:]], 1)
 
     def total(r: Tensor, ident: Tensor) -> Tensor:
         return (r * r).sum() + identity_prior * (ident * ident).sum()
@@ -160,7 +135,7 @@ def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews
                    edge_weight: float = 1.0, eyelid_weight: float = 0.2, iterations: int = 15,
                    supersample: int = 2, extra_points: np.ndarray | None = None,
                    extra_weight: float = 0.25, photometric_weight: float = 0.0,
-                   photometric: dict | None = None, similar_view: float = 0.03) -> tuple[np.ndarray, PoseState]:
+                   photometric: dict | None = None) -> tuple[np.ndarray, PoseState]:
     """Estimate the identity shared by the frames of `views` (see the module docstring).
 
     Args:
@@ -175,8 +150,6 @@ def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews
             weight `extra_weight` each.
         photometric_weight: w_p of the photometric term (`nodes.fit.photometric`, needs
             `views.plates`) in the rounds anchored on a render; photometric: its sampling arguments.
-        similar_view: sigma of `view_redundancy_weights` (radians, from the rigid start), by
-            which each frame's energy is weighted; 0 = every frame weighs 1.
     Returns:
         identity (I,) float32 and the frames' final states.
     """
@@ -194,7 +167,6 @@ def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews
     fallback = landmark_anchors(model, b, c, len(indices))
     w68 = torch.as_tensor(landmark_weights("all", eyelid=eyelid_weight), device=model.neutral.device)
     base = model.neutral.clone()
-    frame_weights = view_redundancy_weights(state, views.world_to_camera, similar_view) if similar_view > 0 else None
     for r in range(outer + 1):
         samples = None
         if r == 0:
@@ -210,7 +182,6 @@ def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews
         w_lm = torch.cat([w68.expand(b, c, 68), w_extra.expand(b, c, len(extra))], -1)
         state, identity = _identity_step(model, id_t, views, anchors, state, identity, w_lm, prior=prior,
                                          identity_prior=identity_prior, edge_weight=edge_weight,
-                                         iterations=iterations, photo=samples, photo_weight=photometric_weight,
-                                         frame_weights=frame_weights)
+                                         iterations=iterations, photo=samples, photo_weight=photometric_weight)
     model.neutral = base
     return identity.cpu().numpy().astype(np.float32), state

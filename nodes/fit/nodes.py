@@ -455,7 +455,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 5
+    version = 4
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -474,10 +474,6 @@ class EstimateIdentity(Node):
         photometric_weight: float = Param(PHOTOMETRIC_WEIGHT, ge=0, description="w_p of the photometric term "
                                           "(as fit.RigidPose's), used when `images` and `appearance` are "
                                           "connected: the frames' poses then constrain the shape as views do.")
-        similar_view: float = Param(0.03, ge=0, description="Radians: frames that see the head from directions "
-                                    "closer than about this count together as one view (a static head's frames "
-                                    "repeat one view's evidence; see view_redundancy_weights); 0 = each frame "
-                                    "counts fully.")
 
     landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) Multi-PIE or (F, 468, 2) face-mesh plate landmarks "
                    "(the identity then also fits the 400 other face-mesh points: cheeks, forehead, nose), one per "
@@ -541,8 +537,7 @@ class EstimateIdentity(Node):
             ident, _ = solve_identity(fm, model.identity_deltas, sub, state, net, identity_prior=p.identity_prior,
                                       iterations=p.iterations, extra_points=MESH_EXTRA_POINTS if mesh else None,
                                       extra_weight=p.mesh_weight,
-                                      photometric_weight=p.photometric_weight if photo else 0.0,
-                                      similar_view=p.similar_view)
+                                      photometric_weight=p.photometric_weight if photo else 0.0)
         fitted = FaceModel(neutral=model.evaluate(np.zeros(len(model.expression_names)), ident),
                            faces=model.faces, expression_deltas=model.expression_deltas,
                            expression_names=list(model.expression_names), identity_deltas=model.identity_deltas,

@@ -142,32 +142,3 @@ def test_default_appearance_carries_the_plates_noise_when_asked():
         assert abs(noise - 0.03) < 0.003
     with pytest.raises(NodeError, match="'frame': expected a frame of the shot"):
         run_node(EstimateAppearance, {"mode": "default", "noise": -1, "frame": 7}, **where)
-
-
-def test_identity_counts_repeated_views_of_a_static_head_as_one():
-    """Three copies of one frame (a locked-off shot) give the identity of that frame alone; counted
-    three times (similar_view 0) they outweigh the prior three times over and give another."""
-    pytest.importorskip("tflite")
-    from nodegraph import ImageSequence, run_node
-    from nodes.fit import EstimateIdentity
-    from nodes.fit.synthetic import random_face_parameters, render_plates
-    from nodes.landmarks import DetectFaces, FaceLandmarks
-
-    face = load_face_model()
-    cam = Camera.from_fov(256, 256, 30.0)
-    truth = random_face_parameters(face, 1, seed=5, distance_cm=65.0)
-    plate = render_plates(face, [cam], truth)[0]
-
-    def identity(copies: int, **params) -> np.ndarray:
-        seq = ImageSequence(np.repeat(plate, copies, 0), colour_space="linear")
-        boxes = run_node(DetectFaces, images=seq)["boxes"]
-        marks = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"]
-        out = run_node(EstimateIdentity, dict(frames_used=copies, iterations=10, **params), frames=range(copies),
-                       landmarks=[marks], boxes=[boxes], cameras=[cam], model=face)
-        return np.asarray(out["identity"].value["identity"])
-
-    one, three, counted = identity(1), identity(3), identity(3, similar_view=0.0)
-    print("max difference from one frame: weighted", np.abs(three - one).max(), "counted", np.abs(counted - one).max(),
-          "norm", np.linalg.norm(one))
-    assert np.abs(three - one).max() < 0.02 * np.linalg.norm(one)
-    assert np.abs(counted - one).max() > 0.1 * np.linalg.norm(one)
