@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .energy import axis_angle_to_rotmat, project_views, project_views_jacobian
+from .energy import _skew, axis_angle_to_rotmat, project_views, project_views_jacobian
 from .views import FitModel, FitViews, _barycentrics, at_anchors, image_to_crop
 
 __all__ = ["PHOTO_UNIT", "PhotoSamples", "gaussian_blur", "sample_bilinear", "photometric_samples",
@@ -257,10 +257,7 @@ class PhotoTerm:
         """Residuals (B, M) and Jacobian (B, M, 6 + S) in (omega, t, active) at omega = 0."""
         q = self._local(active) @ rot[:, None].transpose(-1, -2)  # (B, C, N, 3) rotated, not translated
         r, jp = photometric_point_jacobian(self.samples, q + trans[:, None, None, :], self.views, self.weight)
-        x, y, z = q.unbind(-1)
-        zero = torch.zeros_like(x)
-        neg_skew = torch.stack([zero, z, -y, -z, zero, x, y, -x, zero], -1).reshape(*q.shape, 3)  # -[q]x
         dshape = torch.einsum("bij,bcnjs->bcnis", rot, self.basis)
-        jac = torch.cat([jp @ neg_skew, jp, jp @ dshape], -1)
+        jac = torch.cat([jp @ -_skew(q), jp, jp @ dshape], -1)  # d q / d omega = -[q]x
         b = r.shape[0]
         return r.reshape(b, -1), jac.reshape(b, -1, jac.shape[-1])

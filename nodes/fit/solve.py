@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
-from .energy import (EDGES_68, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
+from .energy import (EDGES_68, _skew, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
                      project_views, project_views_jacobian)
 from .photometric import PhotoSamples, PhotoTerm, photometric_samples
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, crop_to_image, landmark_anchors,
@@ -222,10 +222,7 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
     rotated = local @ rot0[:, None].transpose(-1, -2)  # (B, C, L, 3)
     _, d_pix = project_views_jacobian(rotated + x[:, None, None, 3:6], views.world_to_camera, views.intrinsics,
                                       views.distortion)
-    px, py, pz = rotated.unbind(-1)
-    zero = torch.zeros_like(px)
-    cols = [torch.stack([zero, pz, -py, -pz, zero, px, py, -px, zero], -1).reshape(*rotated.shape, 3),
-            torch.eye(3, dtype=dt, device=dev).expand(*rotated.shape, 3)]
+    cols = [-_skew(rotated), torch.eye(3, dtype=dt, device=dev).expand(*rotated.shape, 3)]
     if n_w:
         cols.append(torch.einsum("bij,bclsj->bclis", rot0, deltas[:, :, :, shapes]))
     if extra is not None:
@@ -252,8 +249,7 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
         rows = torch.zeros(bsz, 12, n_all, dtype=dt, device=dev)
         three = torch.arange(3, device=dev)
         rows[:, three, 3 + three] = k
-        gens = torch.zeros(3, 3, 3, dtype=dt, device=dev)  # [e_j]_x
-        gens[0, 2, 1], gens[0, 1, 2], gens[1, 0, 2], gens[1, 2, 0], gens[2, 1, 0], gens[2, 0, 1] = 1, -1, 1, -1, 1, -1
+        gens = _skew(torch.eye(3, dtype=dt, device=dev))  # [e_j]_x
         rows[:, 3:, :3] = torch.einsum("jik,bkl->bilj", gens, rot0).reshape(bsz, 9, 3) * (k / 2 ** 0.5)
         parts.append(rows)
     return torch.cat(parts, 1)
