@@ -29,7 +29,8 @@ __all__ = ["Appearance", "albedo_smoothing_steps", "estimate_appearance", "estim
 
 
 class Appearance(NamedTuple):
-    """albedo (V, 3) linear in [0, 1], sh (9, 3), background (3,) linear, seen (V,) bool."""
+    """albedo (V, 3) linear in [0, 1], sh (9, 3), background (3,) linear, seen (V,) bool (a pixel of
+    the plate fell on the vertex's triangles)."""
 
     albedo: np.ndarray
     sh: np.ndarray
@@ -84,10 +85,19 @@ def _lazy_walk(faces: np.ndarray, count: int):
     return (sparse.identity(count, format="csr") - 0.5 * uniform_laplacian(edges, count)).tocsr()
 
 
+def _pool(acc: torch.Tensor, wsum: torch.Tensor, faces: np.ndarray, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """`steps` steps of `_lazy_walk` on per-vertex evidence: sums (V, 3) and weights (V,)."""
+    walk = _lazy_walk(np.asarray(faces, np.int64), acc.shape[0])
+    evidence = np.concatenate([acc.numpy(), wsum.numpy()[:, None]], 1).astype(np.float64)
+    for _ in range(int(steps)):
+        evidence = walk @ evidence
+    return torch.as_tensor(evidence[:, :3], dtype=acc.dtype), torch.as_tensor(evidence[:, 3], dtype=acc.dtype)
+
+
 def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
                         intrinsics: np.ndarray, default_albedo: np.ndarray, *, distortion: np.ndarray | None = None,
                         prior_weight: float = 1.0, region: np.ndarray | None = None,
-                        smooth_steps: int = 0) -> Appearance:
+                        smooth_steps: int = 0, relative_steps: int = 0) -> Appearance:
     """Estimate albedo and SH lighting from one or several linear plates (see the module docstring).
 
     With several frames (the head seen in several poses, the light fixed in the world) the
@@ -108,6 +118,12 @@ def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarr
             that pool each vertex's evidence with its neighbours' before the division: the
             albedo of a noisy plate is the mean over a neighbourhood that grows with k (about
             1 + k rings' worth of pixels), not one pixel's noise (`albedo_smoothing_steps`).
+        relative_steps: 0 = the albedo is painted (the plate divided by the shading). k > 0 = the
+            albedo is the default's times the plate's ratio to it, that ratio's evidence pooled by
+            k more walk steps: the skin's colour comes from the plate, the features (brows, lips,
+            eyes) stay where the model puts them. A painting made at a wrong pose reproduces the
+            plate at that pose, so a later fit against it keeps that pose's error; a pooled ratio
+            carries little of the features' positions.
     Returns:
         Appearance.
     """
@@ -159,16 +175,17 @@ def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarr
             sh[:, ch] = sol[:, 0].float()
         shading = (basis @ sh).clamp_min(0.05)  # (N, 3)
         ratio = colour / shading
+        if relative_steps > 0:  # evidence of the albedo's ratio to the default
+            ratio = ratio / a_p.clamp_min(0.02)
         v = a0.shape[0]
         bw = bary * weight[:, None]  # (N, 3)
         acc = torch.zeros(v, 3).index_add(0, corner.reshape(-1), (bw[..., None] * ratio[:, None]).reshape(-1, 3))
         wsum = torch.zeros(v).index_add(0, corner.reshape(-1), bw.reshape(-1))
-        if smooth_steps > 0:
-            walk = _lazy_walk(np.asarray(faces, np.int64), v)
-            evidence = np.concatenate([acc.numpy(), wsum.numpy()[:, None]], 1).astype(np.float64)
-            for _ in range(int(smooth_steps)):
-                evidence = walk @ evidence
-            acc = torch.as_tensor(evidence[:, :3], dtype=dt)
-            wsum = torch.as_tensor(evidence[:, 3], dtype=dt)
-        albedo = ((acc + prior_weight * a0) / (wsum[:, None] + prior_weight)).clamp(0.0, 1.0)
-    return Appearance(albedo.numpy(), sh.numpy(), bg.numpy(), (wsum > 0).numpy())
+        seen = wsum > 0  # evidence of the vertex's own pixels (pooling spreads it)
+        if smooth_steps + relative_steps > 0:
+            acc, wsum = _pool(acc, wsum, faces, smooth_steps + relative_steps)
+        if relative_steps > 0:
+            albedo = (a0 * (acc + prior_weight) / (wsum[:, None] + prior_weight)).clamp(0.0, 1.0)
+        else:
+            albedo = ((acc + prior_weight * a0) / (wsum[:, None] + prior_weight)).clamp(0.0, 1.0)
+    return Appearance(albedo.numpy(), sh.numpy(), bg.numpy(), seen.numpy())
