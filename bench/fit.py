@@ -37,6 +37,8 @@ def main() -> None:
     ap.add_argument("--albedo-prior", type=float, default=None, help="fit.EstimateAppearance prior_weight")
     ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
     ap.add_argument("--appearance-frames", type=int, default=None, help="fit.EstimateAppearance frames_used")
+    ap.add_argument("--albedo", default=None, choices=["painted", "relative", "default"],
+                    help="fit.EstimateAppearance albedo")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
     ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
     ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
@@ -83,6 +85,8 @@ def main() -> None:
     app_params = {} if args.albedo_prior is None else {"prior_weight": args.albedo_prior}
     if args.render_noise is not None:
         app_params["noise"] = args.render_noise
+    if args.albedo is not None:
+        app_params["albedo"] = args.albedo
     if args.appearance_frames is not None:
         app_params["frames_used"] = args.appearance_frames
     app = run_node(EstimateAppearance, app_params, images=seq, landmarks=marks, boxes=det["boxes"], camera=cam,
