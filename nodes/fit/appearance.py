@@ -97,7 +97,7 @@ def _pool(acc: torch.Tensor, wsum: torch.Tensor, faces: np.ndarray, steps: int) 
 def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, world_to_camera: np.ndarray,
                         intrinsics: np.ndarray, default_albedo: np.ndarray, *, distortion: np.ndarray | None = None,
                         prior_weight: float = 1.0, region: np.ndarray | None = None,
-                        smooth_steps: int = 0, relative_steps: int = 0) -> Appearance:
+                        smooth_steps: int = 0, relative_steps: int = 0, sh: np.ndarray | None = None) -> Appearance:
     """Estimate albedo and SH lighting from one or several linear plates (see the module docstring).
 
     With several frames (the head seen in several poses, the light fixed in the world) the
@@ -124,6 +124,7 @@ def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarr
             eyes) stay where the model puts them. A painting made at a wrong pose reproduces the
             plate at that pose, so a later fit against it keeps that pose's error; a pooled ratio
             carries little of the features' positions.
+        sh: (9, 3) lighting to paint under instead of fitting it (e.g. fitted to more frames).
     Returns:
         Appearance.
     """
@@ -168,11 +169,14 @@ def estimate_appearance(image: np.ndarray, vertices: np.ndarray, faces: np.ndarr
         use = torch.ones(len(ys), dtype=torch.bool)
         if region is not None:
             use = torch.as_tensor(region)[corner].all(1)
-        sh = torch.zeros(9, 3)
-        for ch in range(3):
-            a = basis[use] * a_p[use, ch:ch + 1]
-            sol = torch.linalg.lstsq(a.double(), colour[use, ch:ch + 1].double()).solution
-            sh[:, ch] = sol[:, 0].float()
+        if sh is not None:
+            sh = torch.as_tensor(np.asarray(sh), dtype=dt).reshape(9, 3)
+        else:
+            sh = torch.zeros(9, 3)
+            for ch in range(3):
+                a = basis[use] * a_p[use, ch:ch + 1]
+                sol = torch.linalg.lstsq(a.double(), colour[use, ch:ch + 1].double()).solution
+                sh[:, ch] = sol[:, 0].float()
         shading = (basis @ sh).clamp_min(0.05)  # (N, 3)
         ratio = colour / shading
         if relative_steps > 0:  # evidence of the albedo's ratio to the default

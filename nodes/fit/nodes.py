@@ -339,6 +339,9 @@ def _render_noise(asked: float, plate_noise: float, above: float = 0.02) -> floa
 LIGHTING_FRAMES = 4
 """Frames fitting the lighting when the albedo is not painted (fit.EstimateAppearance)."""
 
+LIGHT_FIRST_SPREAD = 10.0
+"""Degrees of pose spread above which fit.EstimateAppearance lights before it paints."""
+
 RELATIVE_STEPS = 32
 """Walk steps pooling the albedo's ratio to the default (fit.EstimateAppearance albedo 'relative')."""
 
@@ -373,14 +376,21 @@ class EstimateAppearance(Node):
         frame: int = Param(-1, ge=-1, description="Frame (index in the shot) to estimate from; -1 = the "
                            "detected frame with the least open mouth.")
         albedo: Literal["painted", "relative", "default"] = Param(
-            "painted", description="'painted': the plate divided by the shading at every vertex; 'relative': the "
-            "default albedo times the plate's colour ratio to it, pooled over the mesh (`relative_steps`): the "
-            "skin's colour from the plate, the features where the model puts them; 'default': the default albedo, "
-            "only the lighting estimated. A painting reproduces the plate at the pose it was painted at, so on a "
-            "shot whose head turns every later fit inherits that pose's error: 30-frame synthetic shots (random "
-            "poses), seeds 0/1/2/5, median rotation 2.45/1.93/1.39/3.88 deg painted, 0.78/0.74/1.78/1.88 'default' "
-            "(the lighting from 4 frames), seeds 1/2/5 1.07/2.07/1.96 'relative'; but on the demo's near-static "
-            "shot 'relative' raised the error 0.49 -> 2.14 deg, so 'painted' stays the default.")
+            "painted", description="'painted': the plate divided by the shading at every vertex (see `light_first`); "
+            "'relative': the default albedo times the plate's colour ratio to it, pooled over the mesh "
+            "(`relative_steps`): the skin's colour from the plate, the features where the model puts them; "
+            "'default': the default albedo, only the lighting estimated. 30-frame synthetic shots (random poses), "
+            "seeds 0/1/2/5, median rotation: painted 0.98/1.55/1.07/2.38 deg (2.45/1.93/1.39/3.88 without "
+            "light_first), 'default' 0.78/0.74/1.78/1.88, 'relative' seeds 1/2/5 1.07/2.07/1.96; on the demo's "
+            "near-static shot painted 0.49, 'relative' 2.14, 'default' 2.57.")
+        light_first: float = Param(LIGHT_FIRST_SPREAD, ge=0, le=180, description="albedo 'painted': when the "
+                                   f"first pass's poses of {LIGHTING_FRAMES} frames spread by more than this "
+                                   "(degrees from the painting frame's), the passes before the last estimate only "
+                                   "the lighting (default albedo, those frames, photometric), so that the pose the "
+                                   "albedo is painted at comes from renders lit like the plate, and the last paints "
+                                   "under that lighting; else the albedo is painted from the first pass on (a head "
+                                   "seen from one direction does not tell the lighting's terms apart). 180 = never "
+                                   "(as before version 5).")
         relative_steps: int = Param(RELATIVE_STEPS, ge=1, le=256, description="albedo 'relative': steps of the "
                                     "mesh walk pooling the ratio's evidence (fit.appearance.estimate_appearance).")
         prior_weight: float = Param(1.0, ge=0, description="Pull of each vertex's albedo toward the default "
@@ -439,12 +449,17 @@ class EstimateAppearance(Node):
             raise InputError("landmarks", f"expected a face in frame {p.frame}, found none")
         plate_noise = estimate_noise(_linear_rgb(images, frame))
         noise = _render_noise(p.noise, plate_noise)
-        count = p.frames_used or max(painting_frame_count(plate_noise), 1 if p.albedo == "painted" else LIGHTING_FRAMES)
+        paint_count = p.frames_used or painting_frame_count(plate_noise)
+        try_lit_first = p.albedo == "painted" and p.light_first < 180
+        count = p.frames_used or max(paint_count, 1 if p.albedo == "painted" and not try_lit_first else LIGHTING_FRAMES)
+        lit_first, spread = False, 0.0
         pick = np.concatenate([[frame], _painting_frames(landmarks, found, count - 1, exclude=frame)]).astype(int)
         plates = _linear_rgb(images, pick)  # only the frames painted (a shot's plates can be gigabytes)
         from ..landmarks.network import load_face_mesh
         from .appearance import albedo_smoothing_steps, estimate_appearance
-        from .solve import RIGID_STAGES, fit_stages, initial_pose
+        import torch
+
+        from .solve import RIGID_STAGES, PoseState, fit_stages, initial_pose
 
         fm = _fit_model(model, None, self.device)
         views = _views([landmarks], [boxes], [camera], self.device, select=pick,
@@ -457,19 +472,38 @@ class EstimateAppearance(Node):
             photo = PHOTOMETRIC_WEIGHT if n > 0 and len(pick) > 1 else 0.0
             state, _, _ = fit_stages(fm, views, state, RIGID_STAGES, net, outer=p.rounds, iterations=p.iterations,
                                      first_outer_on_landmarks=n == 0, photometric_weight=photo)
+            if n == 0 and try_lit_first:  # light first where the frames see the head from several directions
+                rel = state.rot[:1].transpose(-1, -2) @ state.rot
+                cos = ((torch.diagonal(rel, dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+                spread = float(torch.rad2deg(torch.arccos(cos)).max())
+                lit_first = spread > p.light_first and p.passes > 1
+                keep = len(pick) if lit_first or p.frames_used else min(paint_count, len(pick))
+                if keep < len(pick):  # paint as before: only the painting frames
+                    pick, plates = pick[:keep], plates[:keep]
+                    views = _views([landmarks], [boxes], [camera], self.device, select=pick,
+                                   plates=[plates] if keep > 1 else None, plates_selected=True)
+                    state = PoseState(state.rot[:keep], state.trans[:keep], state.weights[:keep])
             verts = fm.vertices(state.weights, state.rot, state.trans).detach().cpu().numpy()
             app = estimate_appearance(plates, verts, fm.faces, camera.world_to_camera,
                                       np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
                                       distortion=dist, prior_weight=p.prior_weight,
                                       smooth_steps=albedo_smoothing_steps(plate_noise),
                                       relative_steps=p.relative_steps if p.albedo == "relative" else 0)
-            value = appearance_json(albedo0 if p.albedo == "default" else app.albedo, app.sh,
-                                    tuple(app.background), hidden)
+            albedo = albedo0 if p.albedo == "default" or (lit_first and n < p.passes - 1) else app.albedo
+            if lit_first and n == p.passes - 1 and paint_count < len(pick):  # paint fewer frames, under that light
+                albedo = estimate_appearance(plates[:paint_count], verts[:paint_count], fm.faces,
+                                             camera.world_to_camera,
+                                             np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
+                                             distortion=dist, prior_weight=p.prior_weight,
+                                             smooth_steps=albedo_smoothing_steps(plate_noise), sh=app.sh).albedo
+            value = appearance_json(albedo, app.sh, tuple(app.background), hidden)
             value["noise"] = noise
             fm = _fit_model(model, JsonValue(value), self.device)
         value["frame"] = int(frame + self.frames.start)
         value["frames"] = [int(f + self.frames.start) for f in pick]
         value["plate_noise"] = plate_noise
+        value["pose_spread_deg"] = spread
+        value["light_first"] = lit_first
         return {"appearance": JsonValue(value)}
 
 

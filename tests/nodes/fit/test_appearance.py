@@ -74,6 +74,16 @@ def test_one_frame_recovers_the_albedo_and_the_lighting(scene):
     assert np.allclose(app.background, 0.2, atol=1e-3)
 
 
+def test_painting_under_a_given_lighting_keeps_it(scene):
+    app = _estimate(scene, [0], prior_weight=0.01, sh=scene["sh"])
+    assert np.allclose(app.sh, scene["sh"], atol=1e-6)
+    face = scene["face"].groups["face"]
+    seen = np.zeros(len(app.albedo), bool)
+    seen[face] = True
+    seen &= app.seen
+    assert np.abs(app.albedo[seen] - scene["albedo"][seen]).mean() < 0.02  # the tint too: no scale to take
+
+
 def test_several_frames_see_more_of_the_head_and_agree_with_one(scene):
     one = _estimate(scene, [0], prior_weight=0.01)
     three = _estimate(scene, [0, 1, 2], prior_weight=0.01)
