@@ -421,7 +421,9 @@ class EstimateAppearance(Node):
     model = In(FaceModel, doc="The face model (identity applied, if known).")
     appearance = Out(JsonValue, doc="{'albedo': V x 3, 'sh': 9 x 3, 'background': 3, 'hidden_faces': [...], "
                      "'noise': the noise added to the fit's renders; mode 'estimate': 'plate_noise' (the plate's, "
-                     "estimated), 'frame' (the first frame painted) and 'frames' (all the frames painted)}.")
+                     "estimated), 'frame' (the first frame painted), 'frames' (all the frames painted), "
+                     "'lighting_frames' (the frames the lighting was fitted to), 'pose_spread_deg' and 'light_first' "
+                     "(see `light_first`)}.")
 
     def run(self, images: ImageSequence, landmarks: Landmarks2D, boxes: ParamSequence, camera: Camera,
             model: FaceModel) -> dict[str, JsonValue]:
@@ -500,7 +502,9 @@ class EstimateAppearance(Node):
             value["noise"] = noise
             fm = _fit_model(model, JsonValue(value), self.device)
         value["frame"] = int(frame + self.frames.start)
-        value["frames"] = [int(f + self.frames.start) for f in pick]
+        painted = pick[:paint_count] if lit_first else pick
+        value["frames"] = [int(f + self.frames.start) for f in painted]
+        value["lighting_frames"] = [int(f + self.frames.start) for f in pick]
         value["plate_noise"] = plate_noise
         value["pose_spread_deg"] = spread
         value["light_first"] = lit_first

@@ -73,7 +73,8 @@ def _fit(scene, cameras: int, identity_mode: str = "estimate", rounds: int = 4) 
     j = model.expression_names.index("jawOpen")
     return {"rot": rotation_error_deg(v[:, :9].reshape(-1, 3, 3), truth["rotation"]),
             "trans": v[:, 9:12] - truth["translation"], "jaw": np.abs(v[:, 12 + j] - truth["weights"][:, j]),
-            "expr": expr, "rigid": rigid, "identity": ident["identity"].value["identity"], "seconds": seconds}
+            "expr": expr, "rigid": rigid, "identity": ident["identity"].value["identity"], "seconds": seconds,
+            "appearance": app["appearance"].value}
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +107,16 @@ def test_one_camera_translation_jaw_and_bounded_rotation(single):
     assert np.median(np.abs(single["trans"][:, :2])) < 0.75
     assert np.median(single["jaw"]) < 0.2
     assert np.median(single["rot"]) < 6.0
+
+
+@pytest.mark.slow
+def test_the_appearance_lights_first_when_the_head_turns(single):
+    """The scene's yaws spread over +-30 deg: the lighting is fitted to 4 frames before the albedo is
+    painted (from the one frame a clean plate paints)."""
+    app = single["appearance"]
+    print("spread", app["pose_spread_deg"], "frames", app["frames"], app["lighting_frames"])
+    assert app["pose_spread_deg"] > 10.0 and app["light_first"] is True
+    assert len(app["lighting_frames"]) == 4 and app["frames"] == app["lighting_frames"][:1]
 
 
 @pytest.mark.slow
