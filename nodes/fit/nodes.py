@@ -401,8 +401,9 @@ class EstimateAppearance(Node):
                                  "frames with the least open mouths among the others (each vertex's albedo is "
                                  "their weighted mean; the lighting one fit to all); 0 = from the plate's noise "
                                  "(fit.nodes.painting_frame_count: 1 on a clean plate, up to 8 on a noisy one), "
-                                 f"and at least {LIGHTING_FRAMES} unless albedo is 'painted' (the light, fixed in "
-                                 "the world, seen on the head in several poses).")
+                                 f"and at least {LIGHTING_FRAMES} for the lighting unless the albedo is 'painted' "
+                                 "with light_first 180 (the light, fixed in the world, seen on the head in several "
+                                 "poses).")
         passes: int = Param(2, ge=1, le=5, description="Alternations of rigid pose (with the current "
                             "appearance) and appearance (at that pose).")
         noise: float = Param(-2.0, ge=-2, description="Pixel noise (standard deviation, linear) added to the fit's "
@@ -457,10 +458,10 @@ class EstimateAppearance(Node):
         lit_first, spread = False, 0.0
         pick = np.concatenate([[frame], _painting_frames(landmarks, found, count - 1, exclude=frame)]).astype(int)
         plates = _linear_rgb(images, pick)  # only the frames painted (a shot's plates can be gigabytes)
-        from ..landmarks.network import load_face_mesh
-        from .appearance import albedo_smoothing_steps, estimate_appearance
         import torch
 
+        from ..landmarks.network import load_face_mesh
+        from .appearance import albedo_smoothing_steps, estimate_appearance
         from .solve import RIGID_STAGES, PoseState, fit_stages, initial_pose
 
         fm = _fit_model(model, None, self.device)
@@ -468,6 +469,8 @@ class EstimateAppearance(Node):
                        plates=[plates] if len(pick) > 1 else None, plates_selected=True)
         net = load_face_mesh(self.device)
         dist = np.array([camera.k1, camera.k2]) if (camera.k1 or camera.k2) else None
+        intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+        smooth = albedo_smoothing_steps(plate_noise)
         state = initial_pose(fm, views)
         for n in range(p.passes):  # alternate: pose with the current appearance, then appearance at that pose
             # after the first pass, several frames' poses also fit the plate to the painting (photometric)
@@ -486,18 +489,14 @@ class EstimateAppearance(Node):
                                    plates=[plates] if keep > 1 else None, plates_selected=True)
                     state = PoseState(state.rot[:keep], state.trans[:keep], state.weights[:keep])
             verts = fm.vertices(state.weights, state.rot, state.trans).detach().cpu().numpy()
-            app = estimate_appearance(plates, verts, fm.faces, camera.world_to_camera,
-                                      np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
-                                      distortion=dist, prior_weight=p.prior_weight,
-                                      smooth_steps=albedo_smoothing_steps(plate_noise),
+            app = estimate_appearance(plates, verts, fm.faces, camera.world_to_camera, intrinsics, albedo0,
+                                      distortion=dist, prior_weight=p.prior_weight, smooth_steps=smooth,
                                       relative_steps=p.relative_steps if p.albedo == "relative" else 0)
             albedo = albedo0 if p.albedo == "default" or (lit_first and n < p.passes - 1) else app.albedo
             if lit_first and n == p.passes - 1 and paint_count < len(pick):  # paint fewer frames, under that light
                 albedo = estimate_appearance(plates[:paint_count], verts[:paint_count], fm.faces,
-                                             camera.world_to_camera,
-                                             np.array([camera.fx, camera.fy, camera.cx, camera.cy]), albedo0,
-                                             distortion=dist, prior_weight=p.prior_weight,
-                                             smooth_steps=albedo_smoothing_steps(plate_noise), sh=app.sh).albedo
+                                             camera.world_to_camera, intrinsics, albedo0, distortion=dist,
+                                             prior_weight=p.prior_weight, smooth_steps=smooth, sh=app.sh).albedo
             value = appearance_json(albedo, app.sh, tuple(app.background), hidden)
             value["noise"] = noise
             fm = _fit_model(model, JsonValue(value), self.device)
