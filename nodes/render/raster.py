@@ -116,6 +116,9 @@ def _bary(pix, b, i0, i1, i2, qx, qy, out):  # pragma: no cover - compiled
     x1, y1 = pix[b, i1, 0], pix[b, i1, 1]
     x2, y2 = pix[b, i2, 0], pix[b, i2, 1]
     area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    if area == 0.0:  # a triangle seen edge-on: no point is inside it
+        out[0] = out[1] = out[2] = -1.0
+        return area
     out[0] = ((x1 - qx) * (y2 - qy) - (x2 - qx) * (y1 - qy)) / area
     out[1] = ((x2 - qx) * (y0 - qy) - (x0 - qx) * (y2 - qy)) / area
     out[2] = 1.0 - out[0] - out[1]

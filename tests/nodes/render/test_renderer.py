@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("numba")
 
-from nodes.render.raster import rasterize_triangles  # noqa: E402
+from nodes.render.raster import rasterize_triangles, silhouette_pairs  # noqa: E402
 from nodes.render.renderer import (render_mesh, screen_barycentrics, sh_basis, sh_from_lights,  # noqa: E402
                                    triangle_adjacency, vertex_normals)
 
@@ -60,6 +60,18 @@ def test_rasterize_triangles_skips_triangles_behind_the_near_plane():
 def test_rasterize_triangles_error_names_argument():
     with pytest.raises(ValueError, match=r"depth: expected shape \(1, 3\)"):
         rasterize_triangles(np.zeros((1, 3, 2)), np.zeros((1, 4)), np.array([[0, 1, 2]]), 4, 4)
+
+
+def test_silhouette_walk_crosses_a_triangle_seen_edge_on():
+    # pixel (0, 0) shows triangle 0 (clockwise on screen); the walk towards pixel (1, 0) leaves it across
+    # the edge v0-v1 into triangle 1, whose corners are collinear on screen (seen edge-on, zero area)
+    pix = np.array([[[-1.0, -1.0], [0.5, 0.3], [-1.0, 1.0], [2.0, 1.6]]])
+    faces = np.array([[0, 2, 1], [1, 0, 3], [0, 1, 2]])
+    adjacency = np.array([[-1, 1, -1], [-1, -1, 0], [-1, -1, -1]])
+    triangle = np.array([[[0, 2]]])
+    zbuffer = np.array([[[1.0, 2.0]]])
+    occ, far, tri, edge = silhouette_pairs(triangle, zbuffer, pix, faces, adjacency)
+    assert len(occ) == len(far) == len(tri) == len(edge) <= 1  # no division by its zero area
 
 
 def test_triangle_adjacency_pairs_shared_edges():
