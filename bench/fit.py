@@ -37,12 +37,13 @@ def main() -> None:
     ap.add_argument("--albedo-prior", type=float, default=None, help="fit.EstimateAppearance prior_weight")
     ap.add_argument("--identity-prior", type=float, default=None, help="fit.EstimateIdentity identity_prior")
     ap.add_argument("--appearance-frames", type=int, default=None, help="fit.EstimateAppearance frames_used")
-    ap.add_argument("--albedo", default=None, choices=["painted", "relative", "default"],
+    ap.add_argument("--albedo", default=None, choices=["auto", "painted", "relative", "default"],
                     help="fit.EstimateAppearance albedo")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
     ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
     ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
     ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
+    ap.add_argument("--identity-rounds", type=int, default=None, help="fit.EstimateIdentity rounds")
     ap.add_argument("--photometric", type=float, default=None, help="fit.RigidPose / fit.Expression "
                     "photometric_weight (0 = landmarks only)")
     ap.add_argument("--identity-photometric", type=float, default=None, help="fit.EstimateIdentity "
@@ -76,6 +77,8 @@ def main() -> None:
         ident_params["mesh_weight"] = args.mesh_weight
     if args.identity_iterations is not None:
         ident_params["iterations"] = args.identity_iterations
+    if args.identity_rounds is not None:
+        ident_params["rounds"] = args.identity_rounds
     if args.identity == "truth":
         tmp = tempfile.mkdtemp()
         np.savez(f"{tmp}/identity.npz", identity=truth["identity"])

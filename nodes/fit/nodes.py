@@ -336,11 +336,34 @@ def _render_noise(asked: float, plate_noise: float, above: float = 0.02) -> floa
     return 0.0
 
 
+def view_spread_deg(rot: Any, world_to_camera: Any, seen: Any) -> float:
+    """Largest angle (degrees) between the head's orientation in any seen view and in the first.
+
+    Args:
+        rot: (B, 3, 3) torch, the frames' head rotations (model to world).
+        world_to_camera: (C, 4, 4) torch, the cameras.
+        seen: (B, C) bool torch, the views that saw the face.
+    Returns:
+        0 for a single view; the spread of the directions the head was seen from otherwise (the
+        frames' turns and the cameras' placement both count).
+    """
+    import torch
+
+    in_cam = world_to_camera[None, :, :3, :3] @ rot[:, None]  # (B, C, 3, 3) model to each camera
+    views = in_cam[seen.to(torch.bool)]
+    if len(views) < 2:
+        return 0.0
+    rel = views[:1].transpose(-1, -2) @ views
+    cos = ((torch.diagonal(rel, dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+    return float(torch.rad2deg(torch.arccos(cos)).max())
+
+
 LIGHTING_FRAMES = 4
 """Frames fitting the lighting when the albedo is not painted (fit.EstimateAppearance)."""
 
 LIGHT_FIRST_SPREAD = 10.0
-"""Degrees of pose spread above which fit.EstimateAppearance lights before it paints."""
+"""Degrees of pose spread above which fit.EstimateAppearance keeps the default albedo (albedo 'auto') or
+lights before it paints (albedo 'painted')."""
 
 RELATIVE_STEPS = 32
 """Walk steps pooling the albedo's ratio to the default (fit.EstimateAppearance albedo 'relative')."""
@@ -366,7 +389,7 @@ class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
     type_name = "fit.EstimateAppearance"
-    version = 5
+    version = 6
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -375,22 +398,30 @@ class EstimateAppearance(Node):
                                                      "default appearance (render.DefaultAppearance's).")
         frame: int = Param(-1, ge=-1, description="Frame (index in the shot) to estimate from; -1 = the "
                            "detected frame with the least open mouth.")
-        albedo: Literal["painted", "relative", "default"] = Param(
-            "painted", description="'painted': the plate divided by the shading at every vertex (see `light_first`); "
+        albedo: Literal["auto", "painted", "relative", "default"] = Param(
+            "auto", description="'auto': 'default' where the head turns (the first pass's poses of "
+            f"{LIGHTING_FRAMES} frames spread by more than `light_first` degrees), else 'painted'. A turning "
+            "head shows the lighting, and an albedo painted at one pose locks that pose's error into every later "
+            "fit (the painted texture reproduces the plate there, so the landmark and photometric terms both hold "
+            "it); one view does not tell the lighting's terms apart, and painting absorbs what the lighting gets "
+            "wrong. 30-frame synthetic shots seeds 0-5, median rotation with fit.EstimateIdentity version 5: 'auto' "
+            "0.70/0.94/0.78/0.76/0.63/1.03 deg, 'painted' 1.07/1.81/-/0.77/-/2.10. "
+            "'painted': the plate divided by the shading at every vertex (see `light_first`); "
             "'relative': the default albedo times the plate's colour ratio to it, pooled over the mesh "
             "(`relative_steps`): the skin's colour from the plate, the features where the model puts them; "
             "'default': the default albedo, only the lighting estimated. 30-frame synthetic shots (random poses), "
             "seeds 0/1/2/5, median rotation: painted 0.98/1.55/1.07/2.38 deg (2.45/1.93/1.39/3.88 without "
             "light_first), 'default' 0.78/0.74/1.78/1.88, 'relative' seeds 1/2/5 1.07/2.07/1.96; on the demo's "
             "near-static shot painted 0.49, 'relative' 2.14, 'default' 2.57.")
-        light_first: float = Param(LIGHT_FIRST_SPREAD, ge=0, le=180, description="albedo 'painted': when the "
+        light_first: float = Param(LIGHT_FIRST_SPREAD, ge=0, le=180, description="albedo 'auto': the pose spread "
+                                   "(degrees) above which the albedo is the default's; albedo 'painted': when the "
                                    f"first pass's poses of {LIGHTING_FRAMES} frames spread by more than this "
                                    "(degrees from the painting frame's), the passes before the last estimate only "
                                    "the lighting (default albedo, those frames, photometric), so that the pose the "
                                    "albedo is painted at comes from renders lit like the plate, and the last paints "
                                    "under that lighting; else the albedo is painted from the first pass on (a head "
                                    "seen from one direction does not tell the lighting's terms apart). 180 = never "
-                                   "(as before version 5).")
+                                   "(as before version 5; 'auto' then always paints).")
         relative_steps: int = Param(RELATIVE_STEPS, ge=1, le=256, description="albedo 'relative': steps of the "
                                     "mesh walk pooling the ratio's evidence (fit.appearance.estimate_appearance).")
         prior_weight: float = Param(1.0, ge=0, description="Pull of each vertex's albedo toward the default "
@@ -402,8 +433,8 @@ class EstimateAppearance(Node):
                                  "their weighted mean; the lighting one fit to all); 0 = from the plate's noise "
                                  "(fit.nodes.painting_frame_count: 1 on a clean plate, up to 8 on a noisy one), "
                                  f"and at least {LIGHTING_FRAMES} for the lighting unless the albedo is 'painted' "
-                                 "with light_first 180 (the light, fixed in the world, seen on the head in several "
-                                 "poses).")
+                                 "or 'auto' with light_first 180 (the light, fixed in the world, seen on the head in "
+                                 "several poses).")
         passes: int = Param(2, ge=1, le=5, description="Alternations of rigid pose (with the current "
                             "appearance) and appearance (at that pose).")
         noise: float = Param(-2.0, ge=-2, description="Pixel noise (standard deviation, linear) added to the fit's "
@@ -424,7 +455,7 @@ class EstimateAppearance(Node):
                      "'noise': the noise added to the fit's renders; mode 'estimate': 'plate_noise' (the plate's, "
                      "estimated), 'frame' (the first frame painted), 'frames' (all the frames painted), "
                      "'lighting_frames' (the frames the lighting was fitted to), 'pose_spread_deg' and 'light_first' "
-                     "(see `light_first`)}.")
+                     "(see `light_first`), 'albedo_source' ('painted', 'relative' or 'default': what the albedo is)}.")
 
     def run(self, images: ImageSequence, landmarks: Landmarks2D, boxes: ParamSequence, camera: Camera,
             model: FaceModel) -> dict[str, JsonValue]:
@@ -453,8 +484,9 @@ class EstimateAppearance(Node):
         plate_noise = estimate_noise(_linear_rgb(images, frame))
         noise = _render_noise(p.noise, plate_noise)
         paint_count = p.frames_used or painting_frame_count(plate_noise)
-        try_lit_first = p.albedo == "painted" and p.light_first < 180
-        count = p.frames_used or max(paint_count, 1 if p.albedo == "painted" and not try_lit_first else LIGHTING_FRAMES)
+        try_lit_first = p.albedo in ("auto", "painted") and p.light_first < 180
+        paints_one = p.albedo in ("auto", "painted") and not try_lit_first
+        count = p.frames_used or max(paint_count, 1 if paints_one else LIGHTING_FRAMES)
         lit_first, spread = False, 0.0
         pick = np.concatenate([[frame], _painting_frames(landmarks, found, count - 1, exclude=frame)]).astype(int)
         plates = _linear_rgb(images, pick)  # only the frames painted (a shot's plates can be gigabytes)
@@ -478,10 +510,8 @@ class EstimateAppearance(Node):
             state, _, _ = fit_stages(fm, views, state, RIGID_STAGES, net, outer=p.rounds, iterations=p.iterations,
                                      first_outer_on_landmarks=n == 0, photometric_weight=photo)
             if n == 0 and try_lit_first:  # light first where the frames see the head from several directions
-                rel = state.rot[:1].transpose(-1, -2) @ state.rot
-                cos = ((torch.diagonal(rel, dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-                spread = float(torch.rad2deg(torch.arccos(cos)).max())
-                lit_first = spread > p.light_first and p.passes > 1
+                spread = view_spread_deg(state.rot, views.world_to_camera, views.seen)
+                lit_first = spread > p.light_first and (p.passes > 1 or p.albedo == "auto")
                 keep = len(pick) if lit_first or p.frames_used else min(paint_count, len(pick))
                 if keep < len(pick):  # paint as before: only the painting frames
                     pick, plates = pick[:keep], plates[:keep]
@@ -492,8 +522,9 @@ class EstimateAppearance(Node):
             app = estimate_appearance(plates, verts, fm.faces, camera.world_to_camera, intrinsics, albedo0,
                                       distortion=dist, prior_weight=p.prior_weight, smooth_steps=smooth,
                                       relative_steps=p.relative_steps if p.albedo == "relative" else 0)
-            albedo = albedo0 if p.albedo == "default" or (lit_first and n < p.passes - 1) else app.albedo
-            if lit_first and n == p.passes - 1 and paint_count < len(pick):  # paint fewer frames, under that light
+            unpainted = p.albedo == "default" or (lit_first and (p.albedo == "auto" or n < p.passes - 1))
+            albedo = albedo0 if unpainted else app.albedo
+            if lit_first and not unpainted and paint_count < len(pick):  # paint fewer frames, under that light
                 albedo = estimate_appearance(plates[:paint_count], verts[:paint_count], fm.faces,
                                              camera.world_to_camera, intrinsics, albedo0, distortion=dist,
                                              prior_weight=p.prior_weight, smooth_steps=smooth, sh=app.sh).albedo
@@ -501,8 +532,9 @@ class EstimateAppearance(Node):
             value["noise"] = noise
             fm = _fit_model(model, JsonValue(value), self.device)
         value["frame"] = int(frame + self.frames.start)
-        painted = pick[:paint_count] if lit_first else pick
+        painted = pick[:0] if unpainted else pick[:paint_count] if lit_first else pick
         value["frames"] = [int(f + self.frames.start) for f in painted]
+        value["albedo_source"] = "default" if unpainted else "relative" if p.albedo == "relative" else "painted"
         value["lighting_frames"] = [int(f + self.frames.start) for f in pick]
         value["plate_noise"] = plate_noise
         value["pose_spread_deg"] = spread
@@ -510,11 +542,38 @@ class EstimateAppearance(Node):
         return {"appearance": JsonValue(value)}
 
 
+IDENTITY_ROUNDS = 6
+"""Rounds of fit.EstimateIdentity anchored on a render. The anchors tie the network's points to the
+surface, but its contour points slide over the surface as the shape and pose change, so each
+round moves only part of the way to the deep energy's minimum: with the true appearance
+(30-frame synthetic shot seed 5, 8 frames) the frames' median pitch error was -1.37 deg after 2
+rounds, -0.97 after 6 and 12 (prior 100); -1.46, -0.47, -0.37 with prior 30."""
+
+IDENTITY_PRIOR = 30.0
+"""lambda_id of fit.EstimateIdentity where its frames see the head from directions spread over more
+than `IDENTITY_SPREAD_DEG` (else `IDENTITY_PRIOR_ONE_VIEW`). With 2 rounds a weaker prior than 100 let the unconverged
+shape drift (pitch worse); with `IDENTITY_ROUNDS` 30 recovers more of the face's proportions:
+30-frame synthetic shots seeds 0-5 with albedo 'auto', median rotation 0.70/0.94/0.78/0.76/0.63/1.03
+deg (prior 100, 2 rounds, painted albedo: 0.98/1.55/1.07/1.14/1.62/2.38). Seed 5 with the true
+appearance: 0.84 deg at 30 (6 rounds), 1.12 at 10 (12 rounds), 1.52 at 100 (2 rounds); with 2
+rounds, 10 and 3 overfit (identity error norm 9.4 and 19.2 against 5.6 at 100)."""
+
+IDENTITY_PRIOR_ONE_VIEW = 100.0
+"""lambda_id of fit.EstimateIdentity where its frames see the head from one direction: one view leaves
+the shape's depth to the prior. skimage's astronaut (one photo, graphs/fit_video.json): the model's 68
+points 0.108 of the eye distance from the network's at 30 (identity norm 22.4), 0.055 at 60, 0.061 at
+100 (norm 11.7), 0.070 at 240."""
+
+IDENTITY_SPREAD_DEG = 10.0
+"""Spread of the viewing directions (`view_spread_deg`) above which the identity's frames count as
+several views (as fit.EstimateAppearance's `light_first`)."""
+
+
 class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 4
+    version = 5
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -524,12 +583,18 @@ class EstimateIdentity(Node):
         path: str = Param("", input_file=True, description="mode 'file': NPZ with 'identity' [I] or JSON "
                           "{'identity': [...]}.")
         frames_used: int = Param(3, ge=1, le=50, description="Detected frames used (spread over the shot).")
-        identity_prior: float = Param(100.0, gt=0, description="lambda_id of |identity|^2 (components are "
-                                      "N(0, 1)), 256-crop pixel^2 per unit^2.")
+        identity_prior: float = Param(-1.0, ge=-1, description="lambda_id of |identity|^2 (components are N(0, "
+                                      "1)), 256-crop pixel^2 per unit^2; <= 0: from the frames' views, "
+                                      f"{IDENTITY_PRIOR:g} where a first rigid fit sees the head from directions "
+                                      f"spread over more than {IDENTITY_SPREAD_DEG:g} deg (frames turning, or "
+                                      f"several cameras), else {IDENTITY_PRIOR_ONE_VIEW:g} (one view leaves the "
+                                      "shape's depth to the prior; fit.nodes.IDENTITY_PRIOR).")
         iterations: int = Param(15, ge=1, le=500, description="Levenberg-Marquardt iterations per round (at "
                                 "most; every frame's unknowns and the identity together).")
         mesh_weight: float = Param(0.25, ge=0, description="Weight of each of the 400 face-mesh points past the "
                                    "68 (landmarks with 468 points only; the 68 weigh 1, eyelids less).")
+        rounds: int = Param(IDENTITY_ROUNDS, ge=1, le=20, description="Rounds anchored on a render (after one on "
+                            "the model's landmark vertices; see IDENTITY_ROUNDS).")
         photometric_weight: float = Param(PHOTOMETRIC_WEIGHT, ge=0, description="w_p of the photometric term "
                                           "(as fit.RigidPose's), used when `images` and `appearance` are "
                                           "connected: the frames' poses then constrain the shape as views do.")
@@ -544,7 +609,8 @@ class EstimateIdentity(Node):
     images = In(ImageSequence, many=True, optional=True, doc="The plates, one per camera in the same order, for "
                 "the photometric term (with `appearance` only).")
     fitted_model = Out(FaceModel, doc="The model with the identity added to its neutral.")
-    identity = Out(JsonValue, doc="{'identity': [I floats]}.")
+    identity = Out(JsonValue, doc="{'identity': [I floats]}; mode 'estimate' also 'identity_prior' (the "
+                   "lambda_id used) and 'view_spread_deg' (`view_spread_deg` of the frames' first rigid fit).")
 
     def input_files(self, frames: range | None = None) -> list[Path]:
         return [Path(self.params.path)] if self.params.mode == "file" and self.params.path else []
@@ -593,15 +659,22 @@ class EstimateIdentity(Node):
             sub68 = dataclasses.replace(sub, target=sub.target[:, :, :68])
             net = load_face_mesh(self.device)
             state, _, _ = fit_stages(fm, sub68, initial_pose(fm, sub68), RIGID_STAGES, net, outer=1, iterations=20)
-            ident, _ = solve_identity(fm, model.identity_deltas, sub, state, net, identity_prior=p.identity_prior,
-                                      iterations=p.iterations, extra_points=MESH_EXTRA_POINTS if mesh else None,
+            spread = view_spread_deg(state.rot, sub.world_to_camera, sub.seen)
+            prior = p.identity_prior if p.identity_prior > 0 else \
+                IDENTITY_PRIOR if spread > IDENTITY_SPREAD_DEG else IDENTITY_PRIOR_ONE_VIEW
+            ident, _ = solve_identity(fm, model.identity_deltas, sub, state, net, identity_prior=prior,
+                                      iterations=p.iterations, outer=p.rounds,
+                                      extra_points=MESH_EXTRA_POINTS if mesh else None,
                                       extra_weight=p.mesh_weight,
                                       photometric_weight=p.photometric_weight if photo else 0.0)
         fitted = FaceModel(neutral=model.evaluate(np.zeros(len(model.expression_names)), ident),
                            faces=model.faces, expression_deltas=model.expression_deltas,
                            expression_names=list(model.expression_names), identity_deltas=model.identity_deltas,
                            groups=model.groups, landmarks=model.landmarks, uv=model.uv, uv_faces=model.uv_faces)
-        return {"fitted_model": fitted, "identity": JsonValue({"identity": [float(x) for x in ident]})}
+        value: dict[str, Any] = {"identity": [float(x) for x in ident]}
+        if p.mode == "estimate":
+            value.update(identity_prior=float(prior), view_spread_deg=spread)
+        return {"fitted_model": fitted, "identity": JsonValue(value)}
 
 
 class RigidPose(Node):

@@ -88,11 +88,8 @@ def two(scene):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 11 rotation target not met: measured (256 px, seed 3, 4 frames, estimated identity "
-                   "and appearance, photometric term on) median rotation 1.85 deg (per frame 2.1 1.3 2.3 1.6; 3.5 "
-                   "with landmarks only); with the true identity 0.8 deg on bench/fit.py's 50 frames: the estimated "
-                   "identity is the error left", strict=False)
 def test_rigid_and_jaw_accuracy_one_camera(single):
+    """The issue's targets (measured: median rotation 1.40 deg, per frame 1.43 1.37 1.22 1.55)."""
     print("rot", single["rot"], "time", single["seconds"], "trans", single["trans"], "jaw", single["jaw"])
     assert np.median(single["rot"]) < 1.5
     assert np.median(np.abs(single["trans"][:, :2])) < 0.5
@@ -110,13 +107,28 @@ def test_one_camera_translation_jaw_and_bounded_rotation(single):
 
 
 @pytest.mark.slow
-def test_the_appearance_lights_first_when_the_head_turns(single):
-    """The scene's yaws spread over +-30 deg: the lighting is fitted to 4 frames before the albedo is
-    painted (from the one frame a clean plate paints)."""
+def test_the_appearance_of_a_turning_head_keeps_the_default_albedo(single):
+    """The scene's yaws spread over +-30 deg: albedo 'auto' estimates only the lighting, from 4 frames,
+    and paints nothing."""
     app = single["appearance"]
     print("spread", app["pose_spread_deg"], "frames", app["frames"], app["lighting_frames"])
     assert app["pose_spread_deg"] > 10.0 and app["light_first"] is True
+    assert app["albedo_source"] == "default" and app["frames"] == [] and len(app["lighting_frames"]) == 4
+
+
+@pytest.mark.slow
+def test_a_painted_albedo_of_a_turning_head_is_lit_first(scene):
+    """albedo 'painted': the lighting is fitted to 4 frames before the albedo is painted (from the one
+    frame a clean plate paints); the painting then differs from the default albedo."""
+    from nodes.render.appearance import default_albedo
+
+    model, cams, _, views = scene
+    seq, boxes, marks = views[0]
+    app = run_node(EstimateAppearance, {"albedo": "painted"}, frames=range(FRAMES), images=seq, landmarks=marks,
+                   boxes=boxes, camera=cams[0], model=model)["appearance"].value
+    assert app["light_first"] is True and app["albedo_source"] == "painted"
     assert len(app["lighting_frames"]) == 4 and app["frames"] == app["lighting_frames"][:1]
+    assert np.abs(np.asarray(app["albedo"]) - default_albedo(model)).max() > 0.05
 
 
 @pytest.mark.slow
@@ -128,9 +140,8 @@ def test_two_cameras_halve_the_depth_error(single, two):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 11 rotation target not met with two cameras: measured median 2.6 deg (per frame "
-                   "3.7 1.9 2.3 3.0; 3.3 with landmarks only)", strict=False)
 def test_two_cameras_rotation(two):
+    """Measured: median 1.03 deg (per frame 1.24 0.86 0.84 1.21)."""
     assert np.median(two["rot"]) < 1.5
 
 
@@ -218,10 +229,11 @@ def test_plates_that_do_not_match_the_cameras_are_refused(scene):
 
 @pytest.mark.slow
 def test_on_a_noisy_plate_the_appearance_paints_several_frames(tmp_path):
-    """Plate noise 0.03 (six times bench/fit.py's): fit.EstimateAppearance's defaults paint several
-    frames with pooled evidence and put the plate's noise in the renders, and the fit's
-    photometric weight grows with the noise; the rotation is then better than with one frame
-    painted and clean renders (true identity, 8 frames)."""
+    """Plate noise 0.03 (six times bench/fit.py's): a painted albedo is painted from several frames
+    with pooled evidence, the plate's noise goes into the renders, and the fit's photometric weight
+    grows with the noise; the rotation is then better than with one frame painted and clean renders
+    (true identity, 8 frames). The defaults (albedo 'auto': this head turns, so the default albedo
+    under the estimated lighting) do better than one frame painted too."""
     model = load_face_model()
     cams = [Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")]
     frames = 8
@@ -231,16 +243,19 @@ def test_on_a_noisy_plate_the_appearance_paints_several_frames(tmp_path):
     fitted = run_node(EstimateIdentity, {"mode": "file", "path": str(tmp_path / "identity.npz")}, frames=range(frames),
                       landmarks=[marks], boxes=[boxes], cameras=cams[:1], model=model)["fitted_model"]
     errors = {}
-    for name, params in (("one frame", {"frames_used": 1, "noise": 0}), ("defaults", {})):
+    for name, params in (("one frame", {"albedo": "painted", "frames_used": 1, "noise": 0}),
+                         ("painted", {"albedo": "painted"}), ("defaults", {})):
         app = run_node(EstimateAppearance, params, frames=range(frames), images=seq, landmarks=marks, boxes=boxes,
                        camera=cams[0], model=fitted)["appearance"]
-        if name == "defaults":
-            assert len(app.value["frames"]) == frames and abs(app.value["plate_noise"] - 0.03) < 0.003
-            assert app.value["noise"] == app.value["plate_noise"]
+        if name != "one frame":
+            assert abs(app.value["plate_noise"] - 0.03) < 0.003 and app.value["noise"] == app.value["plate_noise"]
+            assert app.value["frames"] == ([] if name == "defaults" else app.value["lighting_frames"])
+            assert len(app.value["lighting_frames"]) == frames
         common = dict(frames=range(frames), landmarks=[marks], boxes=[boxes], cameras=cams, model=fitted,
                       appearance=app, images=[seq])
         rigid = run_node(RigidPose, **common)["pose"]
         pose = run_node(Expression, pose=rigid, **common)["fitted"].values
         errors[name] = rotation_error_deg(pose[:, :9].reshape(-1, 3, 3), truth["rotation"])
     print({k: v.round(2) for k, v in errors.items()})
+    assert np.median(errors["painted"]) < 0.8 * np.median(errors["one frame"])
     assert np.median(errors["defaults"]) < 0.8 * np.median(errors["one frame"])

@@ -108,7 +108,7 @@ def test_identity_from_the_468_face_mesh_points():
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     marks = run_node(FaceLandmarks, images=seq, boxes=boxes)
     where = dict(frames=range(2), boxes=[boxes], cameras=[cam], model=face)
-    params = {"frames_used": 2, "iterations": 10}
+    params = {"frames_used": 2, "iterations": 10, "rounds": 2}  # few rounds: float32 sums agree to 1e-4
     i68 = np.asarray(run_node(EstimateIdentity, params, landmarks=[marks["landmarks68"]], **where)
                      ["identity"].value["identity"])
     i468 = np.asarray(run_node(EstimateIdentity, params, landmarks=[marks["landmarks468"]], **where)
