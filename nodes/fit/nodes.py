@@ -490,8 +490,6 @@ class EstimateAppearance(Node):
         lit_first, spread = False, 0.0
         pick = np.concatenate([[frame], _painting_frames(landmarks, found, count - 1, exclude=frame)]).astype(int)
         plates = _linear_rgb(images, pick)  # only the frames painted (a shot's plates can be gigabytes)
-        import torch
-
         from ..landmarks.network import load_face_mesh
         from .appearance import albedo_smoothing_steps, estimate_appearance
         from .solve import RIGID_STAGES, PoseState, fit_stages, initial_pose
@@ -551,8 +549,9 @@ rounds, -0.97 after 6 and 12 (prior 100); -1.46, -0.47, -0.37 with prior 30."""
 
 IDENTITY_PRIOR = 30.0
 """lambda_id of fit.EstimateIdentity where its frames see the head from directions spread over more
-than `IDENTITY_SPREAD_DEG` (else `IDENTITY_PRIOR_ONE_VIEW`). With 2 rounds a weaker prior than 100 let the unconverged
-shape drift (pitch worse); with `IDENTITY_ROUNDS` 30 recovers more of the face's proportions:
+than `IDENTITY_SPREAD_DEG` (else `IDENTITY_PRIOR_ONE_VIEW`). With 2 rounds a weaker prior than 100
+let the unconverged shape drift (pitch worse); with `IDENTITY_ROUNDS` 30 recovers more of the
+face's proportions:
 30-frame synthetic shots seeds 0-5 with albedo 'auto', median rotation 0.70/0.94/0.78/0.76/0.63/1.03
 deg (prior 100, 2 rounds, painted albedo: 0.98/1.55/1.07/1.14/1.62/2.38). Seed 5 with the true
 appearance: 0.84 deg at 30 (6 rounds), 1.12 at 10 (12 rounds), 1.52 at 100 (2 rounds); with 2

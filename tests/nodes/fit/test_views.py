@@ -142,3 +142,21 @@ def test_default_appearance_carries_the_plates_noise_when_asked():
         assert abs(noise - 0.03) < 0.003
     with pytest.raises(NodeError, match="'frame': expected a frame of the shot"):
         run_node(EstimateAppearance, {"mode": "default", "noise": -1, "frame": 7}, **where)
+
+
+def test_view_spread_counts_the_frames_turns_and_the_cameras():
+    from scipy.spatial.transform import Rotation
+
+    from nodes.fit.nodes import view_spread_deg
+    from nodes.fit.synthetic import orbit_camera
+
+    cam0 = Camera.from_fov(256, 256, 30.0)
+    cam1 = orbit_camera(cam0, 35.0, [0.0, 0.0, 65.0])
+    w2c = torch.as_tensor(np.stack([cam0.world_to_camera, cam1.world_to_camera]), dtype=torch.float32)
+    turns = torch.as_tensor(Rotation.from_euler("y", [[0.0], [12.0], [-5.0]], degrees=True).as_matrix(), dtype=torch.float32)
+    one = torch.tensor([[True, False]] * 3)
+    assert abs(view_spread_deg(turns, w2c, one) - 12.0) < 1e-3  # the largest turn from the first frame
+    assert view_spread_deg(turns[:1], w2c, one[:1]) == 0.0  # one view
+    still = turns[:1].expand(3, 3, 3)
+    assert abs(view_spread_deg(still, w2c, torch.tensor([[True, True]] * 3)) - 35.0) < 1e-3  # the second camera
+    assert view_spread_deg(turns, w2c, torch.zeros(3, 2, dtype=torch.bool)) == 0.0  # nothing seen
