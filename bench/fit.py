@@ -40,7 +40,8 @@ def main() -> None:
     ap.add_argument("--albedo", default=None, choices=["auto", "painted", "relative", "default"],
                     help="fit.EstimateAppearance albedo")
     ap.add_argument("--render-noise", type=float, default=None, help="fit.EstimateAppearance noise (-1 estimate)")
-    ap.add_argument("--identity-frames", type=int, default=8, help="fit.EstimateIdentity frames_used")
+    ap.add_argument("--identity-frames", type=int, default=4, help="fit.EstimateIdentity frames_used (as the "
+                    "graphs: 4)")
     ap.add_argument("--mesh-weight", type=float, default=None, help="fit.EstimateIdentity mesh_weight")
     ap.add_argument("--identity-iterations", type=int, default=None, help="fit.EstimateIdentity iterations")
     ap.add_argument("--identity-rounds", type=int, default=None, help="fit.EstimateIdentity rounds")

@@ -404,8 +404,8 @@ class EstimateAppearance(Node):
             "head shows the lighting, and an albedo painted at one pose locks that pose's error into every later "
             "fit (the painted texture reproduces the plate there, so the landmark and photometric terms both hold "
             "it); one view does not tell the lighting's terms apart, and painting absorbs what the lighting gets "
-            "wrong. 30-frame synthetic shots seeds 0-5, median rotation with fit.EstimateIdentity version 5: 'auto' "
-            "0.70/0.94/0.78/0.76/0.63/1.03 deg, 'painted' 1.07/1.81/-/0.77/-/2.10. "
+            "wrong. 30-frame synthetic shots seeds 0-5, median rotation with fit.EstimateIdentity version 5 (8 "
+            "frames): 'auto' 0.70/0.94/0.78/0.76/0.63/1.03 deg, 'painted' 1.07/1.81/-/0.77/-/2.10. "
             "'painted': the plate divided by the shading at every vertex (see `light_first`); "
             "'relative': the default albedo times the plate's colour ratio to it, pooled over the mesh "
             "(`relative_steps`): the skin's colour from the plate, the features where the model puts them; "
@@ -551,11 +551,11 @@ IDENTITY_PRIOR = 30.0
 """lambda_id of fit.EstimateIdentity where its frames see the head from directions spread over more
 than `IDENTITY_SPREAD_DEG` (else `IDENTITY_PRIOR_ONE_VIEW`). With 2 rounds a weaker prior than 100
 let the unconverged shape drift (pitch worse); with `IDENTITY_ROUNDS` 30 recovers more of the
-face's proportions:
-30-frame synthetic shots seeds 0-5 with albedo 'auto', median rotation 0.70/0.94/0.78/0.76/0.63/1.03
-deg (prior 100, 2 rounds, painted albedo: 0.98/1.55/1.07/1.14/1.62/2.38). Seed 5 with the true
-appearance: 0.84 deg at 30 (6 rounds), 1.12 at 10 (12 rounds), 1.52 at 100 (2 rounds); with 2
-rounds, 10 and 3 overfit (identity error norm 9.4 and 19.2 against 5.6 at 100)."""
+face's proportions: 30-frame synthetic shots seeds 0-5 with albedo 'auto' and 8 identity frames,
+median rotation 0.70/0.94/0.78/0.76/0.63/1.03 deg (prior 100, 2 rounds, painted albedo:
+0.98/1.55/1.07/1.14/1.62/2.38). Seed 5 with the true appearance: 0.84 deg at 30 (6 rounds), 1.12
+at 10 (12 rounds), 1.52 at 100 (2 rounds); with 2 rounds, 10 and 3 overfit (identity error norm
+9.4 and 19.2 against 5.6 at 100)."""
 
 IDENTITY_PRIOR_ONE_VIEW = 100.0
 """lambda_id of fit.EstimateIdentity where its frames see the head from one direction: one view leaves
