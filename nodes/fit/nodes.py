@@ -349,13 +349,14 @@ def view_spread_deg(rot: Any, world_to_camera: Any, seen: Any) -> float:
     """
     import torch
 
+    from ..geometry.rigid import rotation_angle
+
     in_cam = world_to_camera[None, :, :3, :3] @ rot[:, None]  # (B, C, 3, 3) model to each camera
     views = in_cam[seen.to(torch.bool)]
     if len(views) < 2:
         return 0.0
-    rel = views[:1].transpose(-1, -2) @ views
-    cos = ((torch.diagonal(rel, dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-    return float(torch.rad2deg(torch.arccos(cos)).max())
+    rel = (views[:1].transpose(-1, -2) @ views).detach().cpu().numpy()
+    return float(np.degrees(rotation_angle(rel).max()))
 
 
 LIGHTING_FRAMES = 4
