@@ -7,6 +7,7 @@ from .runner import RunResult, explain, run
 from .types import (FaceModel, Files, FlowSequence, ImageSequence, JsonValue, Landmarks2D,
                     MeshSequence, ParamSequence, PortType, RigidSequence, Table, TorchModel)
 from .types import Camera, CameraRig
+from .performance import Performance
 from .models import register_architecture
 
 __all__ = [
@@ -15,6 +16,6 @@ __all__ = [
     "windowed", "FaceModel", "Files", "FlowSequence", "ImageSequence", "JsonValue",
     "Landmarks2D", "MeshSequence", "ParamSequence", "PortType", "RigidSequence", "Table",
     "TorchModel", "Graph", "PortRef", "RunResult", "explain", "run",
-    "Camera", "CameraRig", "register_architecture",
+    "Camera", "CameraRig", "Performance", "register_architecture",
 ]
 __version__ = "0.1.0"

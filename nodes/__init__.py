@@ -10,7 +10,7 @@ those inside `run()` (see tests/test_startup.py).
 
 from ._areas import import_modules
 
-AREAS = ["io", "mesh", "synth", "rigid", "stabilize", "report", "render", "landmarks", "dynamics", "fit", "flow", "temporal"]
+AREAS = ["io", "mesh", "synth", "rigid", "stabilize", "report", "render", "landmarks", "dynamics", "fit", "flow", "temporal", "export"]
 NODEGRAPH_AREAS = AREAS
 
 

@@ -3,4 +3,4 @@
 from .._areas import import_modules
 
 import_modules(__name__, ["mesh", "image", "video", "sequences", "face_model", "stabilization",
-                          "camera"])
+                          "camera", "livelink"])

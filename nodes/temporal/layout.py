@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from nodegraph import FaceModel, ParamSequence
+from nodegraph.performance import MATRIX_COLUMNS, TRANSLATION_COLUMNS
 
 __all__ = ["ROTATION_NAMES", "TRANSLATION_NAMES", "RIGID_NAMES", "MATRIX_NAMES", "FIT_TRANSLATION_NAMES", "Layout",
            "params_layout", "make_params", "to_unknowns", "from_unknowns",
@@ -29,8 +30,8 @@ __all__ = ["ROTATION_NAMES", "TRANSLATION_NAMES", "RIGID_NAMES", "MATRIX_NAMES",
 ROTATION_NAMES = ("rot_x", "rot_y", "rot_z")
 TRANSLATION_NAMES = ("trans_x", "trans_y", "trans_z")
 RIGID_NAMES = ROTATION_NAMES + TRANSLATION_NAMES
-MATRIX_NAMES = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
-FIT_TRANSLATION_NAMES = ("tx", "ty", "tz")
+MATRIX_NAMES = MATRIX_COLUMNS  # the fit's layout (`nodegraph.performance`)
+FIT_TRANSLATION_NAMES = TRANSLATION_COLUMNS
 
 
 @dataclass(frozen=True)

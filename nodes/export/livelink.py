@@ -1,0 +1,105 @@
+"""Write a performance as a Live Link Face CSV (`export.LiveLinkCSV`): the take layout of the
+Live Link Face app, which Unreal's importer and the MetaHuman tools read.
+
+Columns, timecodes and angle conventions: `nodes.io.arkit`; the reader is `io.LoadLiveLinkCSV`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pydantic import field_validator
+
+from nodegraph import SEQUENCE, Camera, Files, In, InputError, Node, NodeParams, Out, Param, Performance
+from nodegraph.files import files_value, write_text_atomic
+
+from ..io.arkit import (ANGLE_UNIT_RAD, BLEND_SHAPE_COUNT, LIVE_LINK_HEADER, eye_angles, format_timecode,
+                        head_angles, parse_timecode, to_arkit_weights)
+from .scene import head_transforms
+
+__all__ = ["live_link_rows", "live_link_text", "LiveLinkCSV", "check_output_path"]
+
+
+def check_output_path(path: str, suffixes: tuple[str, ...]) -> str:
+    """A validator's check of an output path: '' (skip) or a name ending in one of `suffixes`."""
+    if path and Path(path).suffix.lower() not in suffixes:
+        raise ValueError(f"expected a file name ending in {' or '.join(suffixes)} (or '' to skip), found '{path}'")
+    return path
+
+
+def live_link_rows(arkit: np.ndarray, head: np.ndarray, fps: float, start: str = "00:00:00:00",
+                   decimals: int = 6) -> list[list[str]]:
+    """The CSV's data rows.
+
+    Args:
+        arkit: (F, 52) ARKit weights in `ARKIT_NAMES` order (clipped to [0, 1] here).
+        head: (F, 3, 3) face rotations in ARKit's camera frame.
+        fps: the shot's frame rate (timecodes).
+        start: timecode of the first row.
+        decimals: digits after the point of every value.
+    Returns:
+        F rows of 63 cells.
+    """
+    weights = np.clip(np.asarray(arkit, np.float64), 0.0, 1.0)
+    angles = np.concatenate([head_angles(head), eye_angles(weights)], axis=1) / ANGLE_UNIT_RAD
+    values = np.concatenate([weights, angles], axis=1) + 0.0  # + 0.0: no "-0.000000"
+    cells = np.char.mod(f"%.{decimals}f", values)
+    cells[cells == "-" + "0." + "0" * decimals] = "0." + "0" * decimals
+    return [[format_timecode(i, fps, start), str(BLEND_SHAPE_COUNT), *row] for i, row in enumerate(cells.tolist())]
+
+
+def live_link_text(rows: list[list[str]]) -> str:
+    """The whole file: the header and the rows, comma-separated, `\\n` line ends."""
+    return "\n".join(",".join(r) for r in [list(LIVE_LINK_HEADER), *rows]) + "\n"
+
+
+class LiveLinkCSV(Node):
+    """Write the performance as a Live Link Face CSV take (52 ARKit curves, head and eye angles)."""
+
+    type_name = "export.LiveLinkCSV"
+    version = 1
+    kind = SEQUENCE
+    writes_files = True
+
+    class Params(NodeParams):
+        path: str = Param(..., output_file=True, description="Destination .csv; '' = write nothing.")
+        start_timecode: str = Param("00:00:00:00", description="Timecode of the first frame, HH:MM:SS:FF at the "
+                                    "shot's frame rate (rounded to whole frames a second).")
+        decimals: int = Param(6, ge=3, le=9, description="Digits after the point (6: weights to 1e-6, below "
+                              "any visible difference).")
+
+        @field_validator("path")
+        @classmethod
+        def _csv(cls, value: str) -> str:
+            return check_output_path(value, (".csv",))
+
+        @field_validator("start_timecode")
+        @classmethod
+        def _timecode(cls, value: str) -> str:
+            parse_timecode(value)
+            return value
+
+    performance = In(Performance, doc="The performance (weights by the model's names: ICT or ARKit).")
+    camera = In(Camera, optional=True, doc="The plate's camera: head angles relative to it (as the app "
+                "records them); absent: relative to the performance's world, taken as y up and facing +z.")
+    files = Out(Files, doc="The CSV written (none for an empty path).")
+
+    def run(self, performance: Performance, camera: Camera | None = None) -> dict[str, Files]:
+        if not self.params.path:
+            return {"files": files_value([])}
+        arkit = to_arkit_weights(performance.weights, performance.expression_names)
+        if not len(performance.expression_names) or not np.any(_arkit_shapes_present(performance)):
+            raise InputError("performance", f"expected ARKit or ICT shape names, found "
+                                            f"{performance.expression_names[:4]}")
+        head = head_transforms(performance, camera)[:, :3, :3]
+        rows = live_link_rows(arkit, head, performance.fps, self.params.start_timecode, self.params.decimals)
+        write_text_atomic(self.params.path, live_link_text(rows))
+        self.progress(1.0, f"wrote {len(rows)} frames to {self.params.path}")
+        return {"files": files_value([self.params.path])}
+
+
+def _arkit_shapes_present(performance: Performance) -> np.ndarray:
+    """(52,) bool: which ARKit shapes the performance's names cover."""
+    eye = np.eye(len(performance.expression_names))
+    return np.abs(to_arkit_weights(eye, performance.expression_names)).sum(0) > 0

@@ -1,0 +1,79 @@
+"""What every animation writer needs from a performance and a face model: the head's motion in
+the file's frame, and the model's shapes as ARKit-named blendshapes with their weights.
+
+**Frames.** With a camera, the head moves in ARKit's camera frame (the camera at the origin,
+x right, y up, looking down -z: the convention of USD, glTF and ARKit alike), so a fit from a
+video plays in front of the file's default view; without one, in the performance's own world
+(y up when it came from `io.LoadLiveLinkCSV` or a y-up capture).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nodegraph import Camera, FaceModel, Performance
+
+from ..io.arkit import OPENCV_TO_ARKIT, shape_basis
+
+__all__ = ["head_transforms", "Blendshapes", "blendshapes", "check_performance"]
+
+
+def check_performance(performance: Performance, model: FaceModel) -> str:
+    """'' when every shape of the performance is one of the model's, else a message naming the first missing."""
+    known = set(model.expression_names)
+    missing = [n for n in performance.expression_names if n not in known]
+    if missing:
+        return (f"expected shapes of the face model ({len(known)} shapes, e.g. {model.expression_names[:3]}), "
+                f"found {len(missing)} it lacks, e.g. {missing[:3]}")
+    return ""
+
+
+def head_transforms(performance: Performance, camera: Camera | None = None) -> np.ndarray:
+    """(F, 4, 4) float64 head model-to-file transforms, cm.
+
+    Args:
+        performance: its rotation and translation are model-to-world.
+        camera: when given, the file's frame is the camera's in ARKit's convention:
+            `diag(1, -1, -1, 1) @ world_to_camera @ M_f`.
+    """
+    rigid = performance.rigid()
+    if camera is None:
+        return rigid
+    to_file = np.eye(4)
+    to_file[:3, :3] = OPENCV_TO_ARKIT
+    return to_file @ np.asarray(camera.world_to_camera, np.float64) @ rigid
+
+
+@dataclass
+class Blendshapes:
+    """A model's shapes as the file's blendshapes.
+
+    Attributes:
+        names: S blendshape names (the 52 ARKit names first, then asymmetry shapes and others).
+        offsets: (S, V, 3) float32 vertex offsets, cm, model frame.
+        weights: (F, S) float32 weight of each blendshape at each frame.
+    """
+
+    names: list[str]
+    offsets: np.ndarray
+    weights: np.ndarray
+
+
+def blendshapes(performance: Performance, model: FaceModel, *, asymmetry: bool = True) -> Blendshapes:
+    """The model's shapes as ARKit blendshapes and the performance's weights on them.
+
+    `neutral + sum_s weights[:, s] offsets[s]` equals `model.evaluate(w)` for the performance's
+    weights `w` (exactly with `asymmetry`; without it a left-right difference of ICT's split
+    browInnerUp and cheekPuff is averaged away). See `nodes.io.arkit.shape_basis`.
+    """
+    names = list(model.expression_names)
+    index = {n: i for i, n in enumerate(names)}
+    w = np.zeros((len(performance.weights), len(names)))
+    for j, n in enumerate(performance.expression_names):
+        w[:, index[n]] = performance.weights[:, j]
+    out_names, a, b = shape_basis(names, asymmetry=asymmetry)
+    k, v = model.expression_deltas.shape[:2]
+    offsets = (b @ model.expression_deltas.reshape(k, -1).astype(np.float64)).reshape(-1, v, 3)
+    return Blendshapes(out_names, offsets.astype(np.float32), (w @ a.T).astype(np.float32))

@@ -1,0 +1,173 @@
+"""Write a performance as a USD skeletal animation (`export.UsdAnimation`, usd-core's UsdSkel).
+
+The stage (y up, `metersPerUnit` 0.01: cm, `timeCodesPerSecond` = the shot's fps) holds
+
+    /Head                  SkelRoot (the default prim)
+      Skeleton             Skeleton with one joint, `head`: the head's rigid motion
+        Animation          SkelAnimation: the joint's translations and rotations and the
+                           `blendShapeWeights`, time-sampled at every frame
+      Mesh                 Mesh of the fitted head (points, normals, `st` UVs), bound to
+        <shape>            the joint (weight 1) and to one BlendShape per ARKit shape
+
+so a DCC shows the head moving and its 52 ARKit shape keys animated. The posed points at time
+`f` are `M_f (points + sum_s w_fs offsets_s)`, `M_f` the head joint's transform: the
+performance's pose in the file's frame (`nodes.export.scene.head_transforms`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pydantic import field_validator
+
+from nodegraph import SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, Performance
+from nodegraph.files import atomic_path, files_value
+
+from .livelink import check_output_path
+from .scene import blendshapes, check_performance, head_transforms
+
+__all__ = ["vertex_normals", "write_usd_animation", "UsdAnimation"]
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit area-weighted vertex normals of a triangle mesh (trimesh's), float32."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    return np.asarray(mesh.vertex_normals, np.float32)
+
+
+def _quaternions_wxyz(rotation: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) rotations -> (F, 4) unit quaternions (w, x, y, z)."""
+    from scipy.spatial.transform import Rotation
+
+    if not len(rotation):
+        return np.zeros((0, 4))
+    xyzw = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()
+    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+
+
+def write_usd_animation(path: str | Path, model: FaceModel, performance: Performance,
+                        camera: Camera | None = None, *, asymmetry: bool = True, first_frame: int = 0) -> None:
+    """Write the stage described in the module docstring to `path` (.usd, .usdc or .usda), atomically.
+
+    Args:
+        path: destination; the format follows the extension (.usd: binary crate).
+        model: the fitted face model (its neutral is the mesh's rest points, cm).
+        performance: F frames of pose and weights of `model`'s shapes.
+        camera: the head's motion relative to it, y up (see `head_transforms`); None: the world.
+        asymmetry: write the asymmetry shapes that make ICT's split shapes exact.
+        first_frame: time code of the performance's first frame.
+    """
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
+
+    shapes = blendshapes(performance, model, asymmetry=asymmetry)
+    rigid = head_transforms(performance, camera)
+    f = len(rigid)
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(float(performance.fps))
+    stage.SetFramesPerSecond(float(performance.fps))
+    stage.SetStartTimeCode(float(first_frame))
+    stage.SetEndTimeCode(float(first_frame + max(f - 1, 0)))
+
+    root = UsdSkel.Root.Define(stage, "/Head")
+    stage.SetDefaultPrim(root.GetPrim())
+    skeleton = UsdSkel.Skeleton.Define(stage, "/Head/Skeleton")
+    skeleton.CreateJointsAttr(Vt.TokenArray(["head"]))
+    skeleton.CreateJointNamesAttr(Vt.TokenArray(["head"]))
+    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+
+    tokens = [Tf.MakeValidIdentifier(n) for n in shapes.names]
+    if len(set(tokens)) != len(tokens):
+        tokens = [f"{t}_{i}" for i, t in enumerate(tokens)]
+    anim = UsdSkel.Animation.Define(stage, "/Head/Skeleton/Animation")
+    anim.CreateJointsAttr(Vt.TokenArray(["head"]))
+    anim.CreateBlendShapesAttr(Vt.TokenArray(tokens))
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+    quats = _quaternions_wxyz(rigid[:, :3, :3])
+    translations = anim.CreateTranslationsAttr()
+    rotations = anim.CreateRotationsAttr()
+    anim.CreateScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1.0, 1.0, 1.0)]))
+    weights = anim.CreateBlendShapeWeightsAttr()
+    for i in range(f):
+        time = Usd.TimeCode(float(first_frame + i))
+        translations.Set(Vt.Vec3fArray([Gf.Vec3f(*rigid[i, :3, 3].tolist())]), time)
+        w, x, y, z = quats[i].tolist()
+        rotations.Set(Vt.QuatfArray([Gf.Quatf(w, x, y, z)]), time)
+        weights.Set(Vt.FloatArray(shapes.weights[i].tolist()), time)
+
+    mesh = UsdGeom.Mesh.Define(stage, "/Head/Mesh")
+    faces = np.asarray(model.faces, np.int64)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(model.neutral, np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1).astype(np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(vertex_normals(model.neutral, faces)))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    lo, hi = model.neutral.min(0), model.neutral.max(0)
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*lo.tolist()), Gf.Vec3f(*hi.tolist())]))
+    if model.uv is not None and model.uv_faces is not None and len(model.uv_faces) == len(faces):
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                     UsdGeom.Tokens.faceVarying)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(model.uv, np.float32)))
+        st.SetIndices(Vt.IntArray.FromNumpy(np.asarray(model.uv_faces, np.int32).reshape(-1)))
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(constant=True, elementSize=1).Set(Vt.IntArray([0]))
+    binding.CreateJointWeightsPrimvar(constant=True, elementSize=1).Set(Vt.FloatArray([1.0]))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    binding.CreateBlendShapesAttr(Vt.TokenArray(tokens))
+    targets = []
+    for token, offsets in zip(tokens, shapes.offsets):
+        shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(token))
+        moved = np.flatnonzero(np.any(offsets != 0, axis=1)).astype(np.int32)
+        shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(offsets[moved])))
+        shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moved))
+        targets.append(shape.GetPath())
+    binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+
+    with atomic_path(path) as tmp:
+        if not stage.GetRootLayer().Export(str(tmp)):
+            raise OSError(f"USD could not write '{path}'")
+
+
+class UsdAnimation(Node):
+    """Write the fitted head as a USD skeletal animation: mesh, 52 ARKit blendshapes, head motion."""
+
+    type_name = "export.UsdAnimation"
+    version = 1
+    kind = SEQUENCE
+    writes_files = True
+
+    class Params(NodeParams):
+        path: str = Param(..., output_file=True, description="Destination .usd / .usdc (binary) or .usda "
+                          "(text, about 3x larger); '' = write nothing.")
+        asymmetry_shapes: bool = Param(True, description="Also write browInnerUpAsymmetry and "
+                                       "cheekPuffAsymmetry, so ICT's separate left and right halves of those "
+                                       "shapes play back exactly (off: the 52 ARKit shapes only, halves averaged).")
+
+        @field_validator("path")
+        @classmethod
+        def _usd(cls, value: str) -> str:
+            return check_output_path(value, (".usd", ".usdc", ".usda"))
+
+    performance = In(Performance, doc="Pose and weights of the model's shapes.")
+    model = In(FaceModel, doc="The fitted head (fit.EstimateIdentity's fitted_model: identity applied).")
+    camera = In(Camera, optional=True, doc="The plate's camera: the head moves relative to it (y up, the camera "
+                "at the origin looking down -z); absent: in the performance's world.")
+    files = Out(Files, doc="The USD file written (none for an empty path).")
+
+    def run(self, performance: Performance, model: FaceModel, camera: Camera | None = None) -> dict[str, Files]:
+        if not self.params.path:
+            return {"files": files_value([])}
+        problem = check_performance(performance, model)
+        if problem:
+            raise InputError("performance", problem)
+        write_usd_animation(self.params.path, model, performance, camera,
+                            asymmetry=self.params.asymmetry_shapes, first_frame=self.frames.start)
+        self.progress(1.0, f"wrote {performance.num_frames} frames to {self.params.path}")
+        return {"files": files_value([self.params.path])}
