@@ -108,15 +108,20 @@ def test_identity_from_the_468_face_mesh_points():
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     marks = run_node(FaceLandmarks, images=seq, boxes=boxes)
     where = dict(frames=range(2), boxes=[boxes], cameras=[cam], model=face)
-    params = {"frames_used": 2, "iterations": 10, "rounds": 2}  # few rounds: float32 sums agree to 1e-4
+    params = {"frames_used": 2, "iterations": 10, "rounds": 2}
     i68 = np.asarray(run_node(EstimateIdentity, params, landmarks=[marks["landmarks68"]], **where)
                      ["identity"].value["identity"])
     i468 = np.asarray(run_node(EstimateIdentity, params, landmarks=[marks["landmarks468"]], **where)
                       ["identity"].value["identity"])
-    assert np.isfinite(i468).all() and np.abs(i468 - i68).max() > 1e-3  # the 400 other points count
+    effect = np.abs(i468 - i68).max()
+    assert np.isfinite(i468).all() and effect > 0.05  # the 400 other points count (0.28 here)
     none = np.asarray(run_node(EstimateIdentity, dict(params, mesh_weight=0.0), landmarks=[marks["landmarks468"]],
                                **where)["identity"].value["identity"])
-    np.testing.assert_allclose(none, i68, atol=1e-4)  # weight 0: the 68 alone
+    # weight 0: the 68 alone. The two solves sum different arrays (68 against 468 points, zeros
+    # included) through 20 float32 Levenberg-Marquardt steps of a weakly conditioned identity,
+    # so they agree to far less than 1e-4: 9e-3 on one 2-core machine, 4e-4 on another. The
+    # bound is relative to what the test tells apart: a tenth of the 400 points' effect.
+    assert np.abs(none - i68).max() < 0.1 * effect, (np.abs(none - i68).max(), effect)
     bad = Landmarks2D(marks["landmarks468"].points[:, :100], marks["landmarks468"].confidence[:, :100])
     with pytest.raises(NodeError, match="landmarks.*468, 2"):
         run_node(EstimateIdentity, params, landmarks=[bad], **where)
