@@ -12,7 +12,8 @@ from typing import Any, Mapping, TYPE_CHECKING, Iterator, Sequence
 if TYPE_CHECKING:
     from .types import Files
 
-__all__ = ["write_text_atomic", "write_npz_atomic", "file_sha256", "atomic_path", "files_value"]
+__all__ = ["write_text_atomic", "write_npz_atomic", "file_sha256", "atomic_path", "files_value",
+           "check_output_suffix"]
 
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
 
@@ -114,3 +115,17 @@ def write_npz_atomic(path: str | os.PathLike, arrays: Mapping[str, Any]) -> None
         raise ValueError(f"expected a file name ending in .npz, found '{os.fspath(path)}'")
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
+
+
+def check_output_suffix(path: str, suffixes: Sequence[str], *, allow_empty: bool = False) -> str:
+    """Return `path` when it ends in one of `suffixes` (case-insensitive), else raise ValueError.
+
+    For the `field_validator` of an output path parameter, so a wrong extension is refused when
+    the graph is validated, before anything runs. `allow_empty`: '' (write nothing) is accepted.
+    """
+    if allow_empty and path == "":
+        return path
+    if Path(path).suffix.lower() not in {s.lower() for s in suffixes}:
+        want = " or ".join(suffixes) + (" (or '' to skip)" if allow_empty else "")
+        raise ValueError(f"expected a file name ending in {want}, found '{path}'")
+    return path

@@ -20,9 +20,8 @@ import numpy as np
 from pydantic import field_validator
 
 from nodegraph import SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, Performance
-from nodegraph.files import atomic_path, files_value
+from nodegraph.files import atomic_path, check_output_suffix, files_value
 
-from .livelink import check_output_path
 from .scene import blendshapes, check_performance, head_transforms
 from .usd import vertex_normals
 
@@ -160,7 +159,7 @@ class GltfAnimation(Node):
         @field_validator("path")
         @classmethod
         def _glb(cls, value: str) -> str:
-            return check_output_path(value, (".glb",))
+            return check_output_suffix(value, (".glb",), allow_empty=True)
 
     performance = In(Performance, doc="Pose and weights of the model's shapes.")
     model = In(FaceModel, doc="The fitted head (fit.EstimateIdentity's fitted_model: identity applied).")

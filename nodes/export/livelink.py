@@ -6,26 +6,17 @@ Columns, timecodes and angle conventions: `nodes.io.arkit`; the reader is `io.Lo
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 from pydantic import field_validator
 
 from nodegraph import SEQUENCE, Camera, Files, In, InputError, Node, NodeParams, Out, Param, Performance
-from nodegraph.files import files_value, write_text_atomic
+from nodegraph.files import check_output_suffix, files_value, write_text_atomic
 
 from ..io.arkit import (ANGLE_UNIT_RAD, BLEND_SHAPE_COUNT, LIVE_LINK_HEADER, eye_angles, format_timecode,
                         head_angles, parse_timecode, to_arkit_weights)
 from .scene import head_transforms
 
-__all__ = ["live_link_rows", "live_link_text", "LiveLinkCSV", "check_output_path"]
-
-
-def check_output_path(path: str, suffixes: tuple[str, ...]) -> str:
-    """A validator's check of an output path: '' (skip) or a name ending in one of `suffixes`."""
-    if path and Path(path).suffix.lower() not in suffixes:
-        raise ValueError(f"expected a file name ending in {' or '.join(suffixes)} (or '' to skip), found '{path}'")
-    return path
+__all__ = ["live_link_rows", "live_link_text", "LiveLinkCSV"]
 
 
 def live_link_rows(arkit: np.ndarray, head: np.ndarray, fps: float, start: str = "00:00:00:00",
@@ -72,7 +63,7 @@ class LiveLinkCSV(Node):
         @field_validator("path")
         @classmethod
         def _csv(cls, value: str) -> str:
-            return check_output_path(value, (".csv",))
+            return check_output_suffix(value, (".csv",), allow_empty=True)
 
         @field_validator("start_timecode")
         @classmethod

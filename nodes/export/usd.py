@@ -22,9 +22,8 @@ import numpy as np
 from pydantic import field_validator
 
 from nodegraph import SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, Performance
-from nodegraph.files import atomic_path, files_value
+from nodegraph.files import atomic_path, check_output_suffix, files_value
 
-from .livelink import check_output_path
 from .scene import blendshapes, check_performance, head_transforms
 
 __all__ = ["vertex_normals", "write_usd_animation", "UsdAnimation"]
@@ -153,7 +152,7 @@ class UsdAnimation(Node):
         @field_validator("path")
         @classmethod
         def _usd(cls, value: str) -> str:
-            return check_output_path(value, (".usd", ".usdc", ".usda"))
+            return check_output_suffix(value, (".usd", ".usdc", ".usda"), allow_empty=True)
 
     performance = In(Performance, doc="Pose and weights of the model's shapes.")
     model = In(FaceModel, doc="The fitted head (fit.EstimateIdentity's fitted_model: identity applied).")

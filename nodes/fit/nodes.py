@@ -25,10 +25,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Camera, FaceModel, Files, ImageSequence, In, InputError, JsonValue,
                        Landmarks2D, MeshSequence, Node, NodeParams, Out, Param, ParamSequence)
-from nodegraph.files import atomic_path, files_value, write_npz_atomic
+from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
 __all__ = ["DEFAULT_FOV_DEG", "POSE_NAMES", "PlateCamera", "EstimateAppearance", "EstimateIdentity", "RigidPose",
            "Expression", "FlagFailures", "SaveFit", "FitReport"]
@@ -806,6 +807,11 @@ class SaveFit(Node):
 
     class Params(NodeParams):
         path: str = Param(..., output_file=True, description="Destination .npz file.")
+
+        @field_validator("path")
+        @classmethod
+        def _npz(cls, value: str) -> str:
+            return check_output_suffix(value, (".npz",))
 
     fitted = In(ParamSequence, doc="From fit.Expression.")
     flags = In(ParamSequence, doc="From fit.FlagFailures.")

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "RigidFit", "fit_rigid", "rigid_matrix", "invert_rigid", "apply_rigid", "stabilize_vertices",
-    "rotation_angle", "invert_rigid_torch",
+    "rotation_angle", "invert_rigid_torch", "rigid_fit_problem",
 ]
 
 
@@ -127,6 +127,23 @@ def fit_rigid(points_src: np.ndarray, points_ref: np.ndarray, weights: np.ndarra
     translation = mean_ref - scale[..., None] * np.einsum("...ij,...j->...i", rotation, mean_src)
     return RigidFit(rotation, translation, scale)
 
+
+
+def rigid_fit_problem(points: np.ndarray, *, least: int = 3, thickness: float = 1e-3) -> str:
+    """Why (N, 3) points (cm) cannot carry a rigid fit: too few, or on a line ('' when fine).
+
+    The points must be at least `least` distinct ones, and their spread across their main axis
+    (second singular value of the centred points) at least `thickness` times the spread along it,
+    since a rotation about the line through collinear points is not observed.
+    """
+    unique = np.unique(np.asarray(points, np.float64).reshape(-1, 3), axis=0)
+    if len(unique) < least:
+        return f"expected at least {least} distinct vertices for a rigid fit, found {len(unique)}"
+    sv = np.linalg.svd(unique - unique.mean(0), compute_uv=False)
+    if sv[1] <= thickness * sv[0]:
+        return (f"expected vertices spread in more than one direction, found them on a line (singular values "
+                f"{sv.round(6).tolist()}): the rotation about it is not observed")
+    return ""
 
 def rigid_matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """Return the (..., 4, 4) float64 matrix `[[R, t], [0, 0, 0, 1]]`.

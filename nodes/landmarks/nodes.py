@@ -22,10 +22,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, ImageSequence, In, InputError, Landmarks2D, Node, NodeParams,
                        Out, Param, ParamSequence, TorchModel)
-from nodegraph.files import atomic_path, files_value, write_npz_atomic
+from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
 from .correspondence import MEDIAPIPE_TO_68
 
@@ -217,6 +218,11 @@ class SaveLandmarks(Node):
 
     class Params(NodeParams):
         path: str = Param(..., output_file=True, description="Destination .npz file.")
+
+        @field_validator("path")
+        @classmethod
+        def _npz(cls, value: str) -> str:
+            return check_output_suffix(value, (".npz",))
 
     boxes = In(ParamSequence, doc="x0 y0 x1 y1 crop boxes, pixels.")
     landmarks68 = In(Landmarks2D, doc="(F, 68, 2) pixels.")

@@ -20,7 +20,7 @@ import numpy as np
 from nodegraph import (FRAMEWISE, SEQUENCE, In, Index, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, RigidSequence)
 
-from ..geometry.rigid import apply_rigid, fit_rigid, invert_rigid, rigid_matrix
+from ..geometry.rigid import apply_rigid, fit_rigid, invert_rigid, rigid_fit_problem, rigid_matrix
 from ..geometry.sampling import farthest_point_sampling
 
 __all__ = [
@@ -125,6 +125,13 @@ def _group(mesh: MeshSequence, name: str, param: str = "group") -> np.ndarray:
     if idx.size < 3:
         raise InputError(param, f"expected at least 3 vertices in group '{name}', found {idx.size}")
     return idx
+
+
+def _check_fit_points(mesh: MeshSequence, idx: np.ndarray, param: str = "group") -> None:
+    """Refuse vertices that cannot carry a rigid fit (fewer than 3 distinct, or on a line), in frame 0."""
+    problem = rigid_fit_problem(mesh.vertices[0, idx] if mesh.num_frames else np.zeros((0, 3)))
+    if problem:
+        raise InputError(param if len(idx) < mesh.num_vertices else "mesh", problem)
 
 
 def _check_reference(reference: MeshSequence, mesh: MeshSequence) -> np.ndarray:
@@ -270,6 +277,7 @@ class Procrustes(Node):
     def run(self, mesh: MeshSequence, reference: MeshSequence) -> dict:
         ref = _check_reference(reference, mesh)
         idx = _group(mesh, self.params.group)
+        _check_fit_points(reference, idx)
         fit = fit_rigid(ref[idx], mesh.vertices[:, idx].astype(np.float64))
         return _outputs(mesh, fit.matrix())
 
@@ -320,6 +328,7 @@ class ICP(Node):
         p = self.params
         ref = _check_reference(reference, mesh)
         idx = _group(mesh, p.group)
+        _check_fit_points(reference, idx)
         if p.max_points and len(idx) > p.max_points:
             idx = idx[farthest_point_sampling(ref[idx], p.max_points)]
         target_idx = _group(reference, p.target_group, "target_group")

@@ -14,10 +14,14 @@ from pydantic import model_validator
 
 from nodegraph import SEQUENCE, In, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
 
-from ..geometry.rigid import stabilize_vertices
+from ..geometry.rigid import rigid_fit_problem, stabilize_vertices
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS
 
-__all__ = ["ModePursuit", "ModePursuitParams"]
+__all__ = ["ModePursuit", "ModePursuitParams", "MIN_ENERGY_VERTICES"]
+
+MIN_ENERGY_VERTICES = 10
+"""Fewest vertices a robust rigid fit is trusted on: with 3 or 4 the robust penalty can take one
+moving vertex for the head's motion (rotations off by up to 178 degrees were seen); 10 gave 0.17."""
 
 
 class ModePursuitParams(NodeParams):
@@ -56,8 +60,9 @@ class ModePursuitParams(NodeParams):
                                                   "paper used 24 with its fixed schedule).")
     group: str = Param("", description="Vertex group of the mesh that enters the energy (e.g. the "
                                        "face region); \"\" = all vertices.")
-    max_vertices: int = Param(2000, ge=3, description="At most this many energy vertices "
-                                                      "(farthest-point sampling, deterministic).")
+    max_vertices: int = Param(2000, ge=MIN_ENERGY_VERTICES, description="At most this many energy vertices "
+                              "(farthest-point sampling, deterministic); at least 10, since a robust fit "
+                              "to fewer takes a moving vertex for the head's motion.")
     update_rest: bool = Param(True, description="Re-estimate the rest shape (mean shift) before "
                                                 "each stage; ignored when 'rest' is connected.")
     device: str = Param("auto", affects_output=False, pattern="^(auto|cpu|cuda(:[0-9]+)?)$",
@@ -125,9 +130,11 @@ class ModePursuit(Node):
             raise InputError("group", f"expected a vertex group '{p.group}' of the mesh, found "
                                       f"groups {sorted(mesh.groups)}")
         ids = np.asarray(mesh.groups[p.group], np.int64) if p.group else None
-        if ids is not None and np.unique(ids).size < 3:
-            raise InputError("group", f"expected at least 3 vertices in group '{p.group}', "
-                                      f"found {np.unique(ids).size}")
+        problem = rigid_fit_problem(mesh.vertices[0] if ids is None else mesh.vertices[0, np.unique(ids)],
+                                    least=MIN_ENERGY_VERTICES)
+        if problem:
+            raise InputError("group" if ids is not None else "mesh",
+                             (f"group '{p.group}': " if ids is not None else "") + problem)
         rest_vertices = None
         if rest is not None:
             if rest.num_frames != 1:

@@ -554,10 +554,10 @@ class DynamicPerformance(Node):
 
     def run(self, model: FaceModel) -> dict:
         p = self.params
-        if self.frames != range(self.frame_count()):
-            raise InputError("segment_frames", f"expected the run to cover all "
-                                               f"{self.frame_count()} frames, found frames "
-                                               f"{self.frames.start}:{self.frames.stop}")
+        total = self.frame_count()
+        if not 0 <= self.frames.start <= self.frames.stop <= total:
+            raise InputError("segment_frames", f"expected frames within 0:{total} (the simulated performance), "
+                                               f"found frames {self.frames.start}:{self.frames.stop}")
         result = simulate_dynamics(
             model, motions=p.motions, expressions=p.expressions, segment_frames=p.segment_frames,
             fps=p.fps, seed=p.seed, identity_scale=p.identity_scale,
@@ -567,4 +567,9 @@ class DynamicPerformance(Node):
             noise_cm=p.noise_cm)
         out = result._asdict()
         out.pop("offsets")
+        if self.frames != range(total):  # the whole performance is simulated (it is one dynamical
+            # system from its first frame), then the run's frames are cut out of it
+            out = {name: value.slice_frames(self.frames.start, self.frames.stop)
+                   if name != "neutral" and getattr(value, "per_frame", False) else value
+                   for name, value in out.items()}
         return out
