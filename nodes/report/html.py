@@ -1,9 +1,11 @@
 """One self-contained HTML page of a pipeline's results: `report.Html`.
 
-The page embeds every PNG of the connected `Files` (base64 data URIs), shows their markdown
-files as text and every connected `Table` as an HTML table, one section per connection, and
-draws the graph the results came from (when `graph` names its JSON file), each node coloured
-by what it did in this run. Nothing is loaded from the network.
+The page embeds every PNG of the connected `Files` (base64 data URIs), renders their markdown
+files as HTML (`markdown_html`: headings, paragraphs, pipe tables), links their other files,
+and shows every connected `Table` as an HTML table, one section per connection, and draws the
+graph the results came from (when `graph` names its JSON file), each node coloured by what it
+did in this run. Nothing is loaded from the network. Every file is named by a link relative to
+the page's folder (`relative_href`), so the folder can be moved or served as it is.
 
 Per-node timings and cache hits: the node `uses_run_log`, so the runner hands it the records
 of every task upstream of it in the current run (executed or served from the cache, seconds),
@@ -20,13 +22,16 @@ from __future__ import annotations
 
 import base64
 import html
+import os
+import re
 import time
 from pathlib import Path
+from urllib.parse import quote
 
 from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, Table
 from nodegraph.files import files_value, write_text_atomic
 
-__all__ = ["Html", "html_page"]
+__all__ = ["Html", "html_page", "markdown_html", "relative_href"]
 
 _SCRIPT = """<script>
 window.addEventListener("load", function () {
@@ -37,28 +42,98 @@ window.addEventListener("load", function () {
 </script>"""
 
 
-def _table_html(table: Table) -> str:
-    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in table.columns)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(v))}</td>" for v in row) + "</tr>" for row in table.rows)
+def _grid_html(columns: list[str], rows: list[list[str]]) -> str:
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>" for row in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _table_html(table: Table) -> str:
+    return _grid_html([str(c) for c in table.columns], [[_cell(v) for v in row] for row in table.rows])
 
 
 def _cell(value: object) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
-def _files_html(paths: list[str]) -> str:
+def relative_href(path: str | os.PathLike, page: str | os.PathLike) -> str:
+    """The URL of `path` relative to the folder of the HTML file `page` (posix separators, percent-quoted).
+
+    Example:
+        >>> relative_href("/out/demo/stabilization/errors.json", "/out/demo/index.html")
+        'stabilization/errors.json'
+    """
+    rel = os.path.relpath(os.path.abspath(path), os.path.dirname(os.path.abspath(page)))
+    return quote(Path(rel).as_posix())
+
+
+def _link(path: Path, page: str) -> str:
+    return f'<a href="{html.escape(relative_href(path, page))}">{html.escape(path.name)}</a>'
+
+
+_TABLE_RULE = re.compile(r"^\|?\s*:?-+:?\s*(\|\s*:?-+:?\s*)*\|?$")
+
+
+def _row_cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def markdown_html(text: str) -> str:
+    """Render the markdown that reports write as HTML: `#` headings, pipe tables, paragraphs.
+
+    A table is a row of cells, a rule (`|---|---|`) and its rows; other lines join into
+    paragraphs split by blank lines. All text is escaped (no inline markup, no raw HTML).
+
+    Example:
+        >>> markdown_html("| a | b |\\n|---|---|\\n| 1 | 2 |\\n")
+        '<table><tr><th>a</th><th>b</th></tr><tr><td>1</td><td>2</td></tr></table>'
+    """
+    lines = text.splitlines()
+    parts: list[str] = []
+    paragraph: list[str] = []
+
+    def flush() -> None:
+        if paragraph:
+            parts.append(f"<p>{html.escape(' '.join(paragraph))}</p>")
+            paragraph.clear()
+
+    i = 0
+    while i < len(lines):
+        line = lines[i].strip()
+        i += 1
+        heading = re.match(r"^(#{1,6})\s+(.*?)(?:\s+#+)?$", line)
+        if heading:
+            flush()
+            level = min(len(heading.group(1)) + 2, 6)  # below the page's own h1 / h2
+            parts.append(f"<h{level}>{html.escape(heading.group(2))}</h{level}>")
+        elif "|" in line and i < len(lines) and _TABLE_RULE.match(lines[i].strip()):
+            flush()
+            rows = []
+            i += 1  # the rule
+            while i < len(lines) and "|" in lines[i]:
+                rows.append(_row_cells(lines[i]))
+                i += 1
+            parts.append(_grid_html(_row_cells(line), rows))
+        elif line:
+            paragraph.append(line)
+        else:
+            flush()
+    flush()
+    return "\n".join(parts)
+
+
+def _files_html(paths: list[str], page: str) -> str:
     parts = []
     for path in paths:
         p = Path(path)
         if p.suffix.lower() == ".png":
             data = base64.b64encode(p.read_bytes()).decode("ascii")
             parts.append(f'<figure><img alt="{html.escape(p.name)}" src="data:image/png;base64,{data}">'
-                         f"<figcaption>{html.escape(p.name)}</figcaption></figure>")
+                         f"<figcaption>{_link(p, page)}</figcaption></figure>")
         elif p.suffix.lower() == ".md":
-            parts.append(f"<h4>{html.escape(p.name)}</h4><pre>{html.escape(p.read_text())}</pre>")
+            parts.append(f"<h4>{_link(p, page)}</h4>\n{markdown_html(p.read_text())}")
         else:
-            parts.append(f"<p>also written: <code>{html.escape(str(p))}</code></p>")
+            parts.append(f"<p>also written: {_link(p, page)}</p>")
     return "\n".join(parts)
 
 
@@ -103,7 +178,7 @@ class Html(Node):
     """A self-contained HTML page of the results: figures, tables and the graph drawn."""
 
     type_name = "report.Html"
-    version = 1
+    version = 2  # v2: markdown rendered (was raw text), files linked relative to the page (were absolute)
     kind = SEQUENCE
     writes_files = True
     cacheable = False  # it shows the run (uses_run_log): written again by every run
@@ -119,7 +194,8 @@ class Html(Node):
                            "in a graph file resolve against its folder.")
         run_page: str = Param("", description="Link to the run page (`nodegraph run --report-html`), '' = none.")
 
-    figures = In(Files, many=True, optional=True, doc="Files of report nodes: PNGs embedded, .md shown.")
+    figures = In(Files, many=True, optional=True,
+                 doc="Files of report nodes: PNGs embedded, .md rendered, every file linked.")
     tables = In(Table, many=True, optional=True, doc="Tables shown.")
     files = Out(Files, doc="The HTML file.")
 
@@ -137,7 +213,7 @@ class Html(Node):
             if missing:
                 raise InputError("figures", f"connection {i} ('{name}'): expected written files, found missing "
                                             f"{missing[:3]}")
-            sections.append((name, _files_html(list(files.paths))))
+            sections.append((name, _files_html(list(files.paths), p.path)))
         for i, table in enumerate(tables):
             name = p.table_titles[i] if i < len(p.table_titles) else f"table {i + 1}"
             sections.append((name, _table_html(table)))

@@ -30,10 +30,14 @@ if TYPE_CHECKING:
 __all__ = [
     "rigid_to_euler_translation", "default_vertices",
     "PositionSpread", "position_spread", "plot_head_motion", "plot_rigid_curves", "plot_position_histograms",
-    "save_figure", "CaptureReport",
+    "position_histograms_figure", "SERIES_COLOURS", "save_figure", "CaptureReport",
 ]
 
 _AXES = ("x", "y", "z")
+# Distinct line colours of the series of a figure, in order (matplotlib's "tab10" without its grey,
+# which is the world histogram's).
+SERIES_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22",
+                  "#17becf")
 
 
 def rigid_to_euler_translation(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,20 +206,30 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
                              bins: int = 60, vertex_labels: Sequence[int] | None = None) -> Path:
     """Histograms over time of a few vertices' positions, world vs skull frame (paper Fig. 5).
 
+    Writes `position_histograms_figure` (same arguments) as a PNG at `path`; returns the written path.
+    """
+    return save_figure(position_histograms_figure(world, skull, vertices, bins, vertex_labels), path)
+
+
+def position_histograms_figure(world: np.ndarray, skull: np.ndarray | Mapping[str, np.ndarray],
+                               vertices: Sequence[int] | None = None, bins: int = 60,
+                               vertex_labels: Sequence[int] | None = None) -> Figure:
+    """The figure of `plot_position_histograms`.
+
     One row per vertex, one column per coordinate; each panel overlays the mean-removed
-    positions in world (grey) and in each skull frame (coloured), on shared bins. The legend
-    gives each one's median absolute deviation (see `position_spread`).
+    positions in world (grey, filled) and in each skull frame (a line of its own colour of
+    `SERIES_COLOURS`, in order), on shared bins. The legend gives each one's median absolute
+    deviation (see `position_spread`).
 
     Args:
         world: (F, V, 3) cm, world frame.
         skull: (F, V, 3) cm, skull frame, or label -> (F, V, 3).
-        path: PNG file to write.
         vertices: vertex indices; None = `default_vertices(V)` (4 evenly spaced).
         bins: histogram bins per panel.
         vertex_labels: the vertex numbers shown in the titles, one per shown vertex (e.g. the
             original indices when `world` holds only a subset); None = the indices.
     Returns:
-        The written path.
+        The figure (no canvas attached).
     """
     spread = position_spread(world, skull, vertices)
     skulls = _as_mapping(skull)
@@ -228,6 +242,8 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
                         wspace=0.2, hspace=0.45)
     axes = np.atleast_2d(fig.subplots(rows, 3, squeeze=False))
     names = ids if vertex_labels is None else np.asarray(vertex_labels, np.int64)
+    # An explicit colour per skull frame: `stairs(color=None)` draws the patch edge black.
+    colours = {"world": "0.7"} | {k: SERIES_COLOURS[i % len(SERIES_COLOURS)] for i, k in enumerate(skulls)}
     for row, vertex in enumerate(ids):
         for c in range(3):
             ax = axes[row, c]
@@ -238,19 +254,19 @@ def plot_position_histograms(world: np.ndarray, skull: np.ndarray | Mapping[str,
             for k, s in series.items():
                 mad = spread.world[row, c] if k == "world" else spread.skull[k][row, c]
                 counts, _ = np.histogram(s, bins=edges)  # stairs: one artist, far cheaper than hist's
-                ax.stairs(counts, edges, fill=k == "world", color="0.7" if k == "world" else None,
+                ax.stairs(counts, edges, fill=k == "world", color=colours[k],
                           linewidth=1.2, label=f"{k} (MAD {mad:.3f} cm)")
             ax.set_title(f"vertex {int(names[row])}, {_AXES[c]} - mean (cm)", fontsize="small")
             ax.legend(loc="upper right", fontsize="x-small")
     axes[-1, 0].set_ylabel("frames")
-    return save_figure(fig, path)
+    return fig
 
 
 class CaptureReport(Node):
     """Plot a capture's head motion and its vertex histograms in world vs skull frame."""
 
     type_name = "report.CaptureReport"
-    version = 1
+    version = 2  # v2: histograms.png draws each skull frame in its own colour (were all black)
     kind = SEQUENCE
     writes_files = True
     preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")

@@ -56,8 +56,9 @@ class StabilizationReport(Node):
     """
 
     type_name = "report.StabilizationReport"
-    version = 2
-    # v1 had four optional ports estimate_1..estimate_4; v2 has one list port, in edge order.
+    version = 3
+    # v1 had four optional ports estimate_1..estimate_4; v2 has one list port, in edge order;
+    # v3 draws each estimate's histogram in its own colour (v2: all black).
     port_renames = {1: {f"estimate_{i}": "estimates" for i in range(1, 5)}}
     kind = SEQUENCE
     writes_files = True
