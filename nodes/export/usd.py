@@ -124,6 +124,8 @@ def write_usd_animation(path: str | Path, model: FaceModel, performance: Perform
     for token, offsets in zip(tokens, shapes.offsets):
         shape = UsdSkel.BlendShape.Define(stage, mesh.GetPath().AppendChild(token))
         moved = np.flatnonzero(np.any(offsets != 0, axis=1)).astype(np.int32)
+        if not moved.size:  # a shape the model lacks (tongueOut): one zero offset, so importers keep it
+            moved = np.zeros(1, np.int32)
         shape.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(offsets[moved])))
         shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moved))
         targets.append(shape.GetPath())

@@ -180,6 +180,8 @@ def test_usd_animation_poses_like_the_model_and_validates(tmp_path, model, perfo
     anim = UsdSkel.Animation(stage.GetPrimAtPath("/Head/Skeleton/Animation"))
     shapes = list(anim.GetBlendShapesAttr().Get())
     assert shapes[:52] == list(ARKIT_NAMES)
+    for name in shapes:  # every shape has offsets (Blender's importer drops an empty one: tongueOut)
+        assert len(UsdSkel.BlendShape(stage.GetPrimAtPath(f"/Head/Mesh/{name}")).GetOffsetsAttr().Get()) > 0, name
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Head/Mesh"))
     assert len(mesh.GetNormalsAttr().Get()) == len(model.neutral)
     assert UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").GetInterpolation() == UsdGeom.Tokens.faceVarying
