@@ -27,10 +27,10 @@ from typing import Any, Sequence
 
 from . import registry
 from .cache import Cache, NotACache, cache_dir_from_env
-from .errors import GraphError, GraphIssue, NodeError
+from .errors import GraphError, GraphIssue, NodeError, SchedulerError
 from .files import write_text_atomic
 from .graph import Graph
-from .runner import explain, run
+from .runner import check_scheduler, explain, run
 from .schedule import parse_frames
 from .types import Files, JsonValue, PortType, Table
 
@@ -154,6 +154,7 @@ def _cmd_run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     if args.help:
         print(_graph_help(graph, args.graph))
         return 0
+    check_scheduler(args.scheduler)
     graph.apply(_split_assignments(args.assignments, "graph parameter"), strings=True)
     graph.set_strings(_split_assignments(args.set, "--set"))
     try:
@@ -186,11 +187,34 @@ def _cmd_run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
 
         write_text_atomic(args.report_html, run_report_html(result, graph, title=f"nodegraph run {args.graph}"))
         print(f"wrote {args.report_html}", file=sys.stderr)
+    _print_tracebacks(result.failures)
     print(result.summary(), file=sys.stderr)
-    for failure in result.failures:
-        where = failure.get("record", "")
-        print(f"  error record: {where}" if where else "", file=sys.stderr)
+    for group in result.failure_groups():
+        records = [f["record"] for f in group if f.get("record")]
+        if len(records) == 1:
+            print(f"  error record: {records[0]}", file=sys.stderr)
+        elif records:
+            print(f"  error records: {records[0]} and {len(records) - 1} more in {Path(records[0]).parent}",
+                  file=sys.stderr)
     return result.exit_code
+
+
+def _print_tracebacks(failures: Sequence[dict[str, Any]]) -> None:
+    """Print the traceback of each failure that is not bad input (a bug: exit 1) on stderr, once
+    per node and call stack (chunks failing at the same place differ only in their messages)."""
+    stacks: dict[tuple, list[dict[str, Any]]] = {}
+    for failure in failures:
+        text = failure.get("traceback") or ""
+        if failure.get("bad_input") or not text:
+            continue
+        where = tuple(line for line in text.splitlines() if line.startswith("  File "))
+        stacks.setdefault((failure.get("node"), failure.get("exception"), where), []).append(failure)
+    for same in stacks.values():
+        first = same[0]
+        frames = f" (frames {first['frames'][0]}:{first['frames'][1]})" if first.get("frames") else ""
+        also = f"; the same in {len(same) - 1} more chunk(s)" if len(same) > 1 else ""
+        print(f"traceback of {first['type']} '{first['node']}'{frames}{also}:\n{first['traceback'].rstrip()}",
+              file=sys.stderr)
 
 
 def _run_usage() -> str:
@@ -409,6 +433,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2 if err.bad_input else 1
     except (UsageError, NotACache) as err:
         print(f"nodegraph: {err}", file=sys.stderr)
+        return 2
+    except SchedulerError as err:
+        print(f"nodegraph: --scheduler: {err.message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("nodegraph: interrupted", file=sys.stderr)

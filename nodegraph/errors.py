@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["NodegraphError", "GraphIssue", "GraphError", "InputError", "NodeError"]
+__all__ = ["NodegraphError", "GraphIssue", "GraphError", "InputError", "NodeError", "SchedulerError"]
 
 
 class NodegraphError(Exception):
@@ -83,3 +83,17 @@ class NodeError(NodegraphError):
         if port:
             where += f": '{port}'"
         super().__init__(f"{where}: {message}")
+
+
+class SchedulerError(NodegraphError):
+    """The scheduler asked for is not one nodegraph knows, or cannot be reached (exit 2).
+
+    Attributes:
+        scheduler: the scheduler as given ("nosuch", "tcp://farm:8786").
+        message: what was expected and what was found.
+    """
+
+    def __init__(self, scheduler: str, message: str):
+        self.scheduler = scheduler
+        self.message = message
+        super().__init__(f"scheduler {scheduler!r}: {message}")

@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 import json
+import numbers
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +44,12 @@ from .types import PortType
 __all__ = [
     "Kind", "FRAMEWISE", "SEQUENCE", "windowed", "In", "Out", "Node", "NodeParams", "Param",
     "run_node", "execute", "wrap_error", "format_validation_error", "task_seed", "path_params", "Index",
+    "MAX_MAGNITUDE",
 ]
+
+MAX_MAGNITUDE = 1e12
+"""Largest magnitude of a float parameter on a side where its field declares no bound (`ge`,
+`gt`, `le`, `lt`): beyond it a value is a typo or a probe, and arithmetic on it overflows."""
 
 
 @dataclass(frozen=True)
@@ -111,9 +117,11 @@ class Out(In):
 class NodeParams(BaseModel):
     """Base of every node's parameter model.
 
-    Unknown names are errors; values are frozen; floats must be finite; numbers are strict
-    (`true` or "3" is not an integer, `true` or "1.5" is not a float; an integer is a valid
-    float).
+    Unknown names are errors; values are frozen; floats must be finite, and at most
+    `MAX_MAGNITUDE` (1e12) in magnitude on a side where the field declares no bound of its own;
+    numbers are strict (`true` or "3" is not an integer, `true` or "1.5" is not a float; an
+    integer is a valid float); booleans are strict (only `true` / `false`: not "yes", "true"
+    or 1).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -125,7 +133,7 @@ class NodeParams(BaseModel):
             for name, value in data.items():
                 info = cls.model_fields.get(name)
                 if info is not None:
-                    problem = _number_problem(info.annotation, value)
+                    problem = _number_problem(info.annotation, value, tuple(info.metadata))
                     if problem:
                         raise ValueError(f"'{name}': {problem}")
         return data
@@ -154,8 +162,27 @@ def _number_kinds(annotation: Any) -> tuple[set[type], Any]:
     return set(), None
 
 
-def _number_problem(annotation: Any, value: Any) -> str:
-    """Why `value` is not a strict number for a numeric `annotation` ("" when fine)."""
+def _declared_bounds(metadata: tuple[Any, ...]) -> tuple[bool, bool]:
+    """(has a lower bound, has an upper bound) among a field's constraints (`ge`, `gt`, `le`, `lt`)."""
+    lower = upper = False
+    for item in metadata:
+        if hasattr(item, "metadata") and isinstance(item.metadata, list):  # a Field() inside Annotated
+            inner = _declared_bounds(tuple(item.metadata))
+            lower, upper = lower or inner[0], upper or inner[1]
+            continue
+        lower = lower or getattr(item, "ge", None) is not None or getattr(item, "gt", None) is not None
+        upper = upper or getattr(item, "le", None) is not None or getattr(item, "lt", None) is not None
+    return lower, upper
+
+
+def _number_problem(annotation: Any, value: Any, metadata: tuple[Any, ...] = ()) -> str:
+    """Why `value` is not a strict number or boolean for `annotation` ("" when fine).
+
+    `metadata`: the field's constraints, for the `MAX_MAGNITUDE` check of floats.
+    """
+    if get_origin(annotation) is Annotated:
+        base, *extra = get_args(annotation)
+        return _number_problem(base, value, (*metadata, *extra))
     kinds, element = _number_kinds(annotation)
     numeric = kinds & {int, float}
     if numeric:
@@ -166,6 +193,20 @@ def _number_problem(annotation: Any, value: Any) -> str:
             return f"expected {want}, found the string {value!r}"
         if numeric == {int} and isinstance(value, float):
             return f"expected {want}, found {value!r}"
+        if float in numeric and isinstance(value, numbers.Real) and not isinstance(value, bool) \
+                and abs(value) != float("inf"):  # non-finite values: pydantic's allow_inf_nan says so
+            lower, upper = _declared_bounds(metadata)
+            if (value > MAX_MAGNITUDE and not upper) or (value < -MAX_MAGNITUDE and not lower):
+                text = repr(value)
+                found = text if len(text) <= 24 else f"{text[:12]}... ({len(text)} digits)"
+                limit = f"{MAX_MAGNITUDE:g}".replace("e+", "e")
+                return (f"expected a number of magnitude at most {limit} (the parameter declares no bound of "
+                        f"its own), found {found}")
+    if bool in kinds and not isinstance(value, bool):
+        if isinstance(value, str) and str not in kinds:
+            return f"expected true or false, found the string {value!r}"
+        if isinstance(value, numbers.Real) and not numeric:
+            return f"expected true or false, found {value!r}"
     if element is not None and isinstance(value, (list, tuple)):
         for index, item in enumerate(value):
             problem = _number_problem(element, item)

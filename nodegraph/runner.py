@@ -11,6 +11,7 @@ import dataclasses
 import json
 import multiprocessing
 import os
+import re
 import sys
 import threading
 import time
@@ -20,15 +21,20 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from .cache import COPY_LIMIT, Cache, CorruptEntry, cache_dir_from_env
-from .errors import NodeError
+from .errors import NodeError, SchedulerError
 from .graph import Graph
 from .node import Node, execute, format_exception, task_seed
 from .schedule import Plan, TaskPlan, explain_miss, plan_run
 from .types import Files, PortType
 
-__all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "SCHEDULERS"]
+__all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "check_scheduler", "SCHEDULERS",
+           "CONNECT_TIMEOUT_S"]
 
 SCHEDULERS = ("sync", "threads", "processes")
+CONNECT_TIMEOUT_S = 10.0
+"""Seconds to wait for a dask.distributed scheduler to answer before the run fails (exit 2)."""
+
+_ADDRESS = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?[^\s/]+:\d+|inproc://\S+")
 _OK = ("executed", "cached", "restored")
 
 
@@ -213,6 +219,7 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
             "node": spec.node, "type": spec.node_cls.type_name,
             "frames": list(spec.out_frames) if spec.name.split("|")[1] != "all" else None,
             "key": spec.key, "exception": type(err.__cause__ or err).__name__, "message": str(error),
+            "reason": error.message,
             "port": getattr(error, "port", ""), "bad_input": bool(getattr(error, "bad_input", False)),
             "traceback": format_exception(err),
             "input_keys": {port: [spec.description["inputs"][port][i][0] for i in range(len(pieces))]
@@ -377,12 +384,34 @@ class RunResult:
             return 2
         return 1
 
+    def failure_groups(self) -> list[list[dict[str, Any]]]:
+        """The failures grouped by node and message: a node failing the same way in several
+        chunks is one group (its records in frame order); groups in order of first failure."""
+        groups: dict[tuple, list[dict[str, Any]]] = {}
+        for f in self.failures:
+            key = (f.get("node"), f.get("port", ""), f.get("reason", f.get("message")), bool(f.get("bad_input")))
+            groups.setdefault(key, []).append(f)
+        return list(groups.values())
+
+    def failure_line(self, group: list[dict[str, Any]]) -> str:
+        """One line for a group of `failure_groups`: the message once, with the chunks it hit."""
+        first = group[0]
+        if len(group) == 1:
+            return first["message"]
+        where = NodeError(first["node"], first["type"], first.get("reason", ""), port=first.get("port", ""))
+        chunks = sum(1 for t in self.tasks if t["node"] == first["node"])
+        if len(group) == chunks:
+            return f"{where} (in {len(group)} of {chunks} chunks)"
+        frames = ", ".join(f"{f['frames'][0]}:{f['frames'][1]}" for f in group[:4] if f.get("frames"))
+        more = ", ..." if len(group) > 4 else ""
+        return f"{where} (in {len(group)} of {chunks} chunks: frames {frames}{more})"
+
     def summary(self) -> str:
         restored = f", {self.count('restored')} restored" if self.count("restored") else ""
         lines = [f"{len(self.tasks)} tasks: {self.executed()} executed, {self.count('cached')} cached{restored}, "
                  f"{self.count('failed')} failed, {self.count('skipped')} skipped ({self.seconds:.2f} s)"]
-        for f in self.failures:
-            lines.append(f"FAILED {f['message']}")
+        for group in self.failure_groups():
+            lines.append(f"FAILED {self.failure_line(group)}")
         return "\n".join(lines)
 
 
@@ -519,7 +548,7 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
         return list(out[: len(meta_keys)]), list(out[len(meta_keys):])
     from distributed import Client, as_completed
 
-    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    client = scheduler if isinstance(scheduler, Client) else _connect(scheduler)
     try:
         offered: set[str] = set()
         for worker in client.scheduler_info().get("workers", {}).values():
@@ -543,6 +572,26 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
         if client is not scheduler:
             client.close()
     return metas, values
+
+
+def check_scheduler(scheduler: Any) -> None:
+    """Raise SchedulerError unless `scheduler` is a local scheduler's name or a dask.distributed
+    address (`tcp://host:port`); any other object (a `distributed.Client`) is passed on as is."""
+    if isinstance(scheduler, str) and scheduler not in SCHEDULERS and not _ADDRESS.fullmatch(scheduler):
+        raise SchedulerError(scheduler, "expected sync, threads, processes or a dask.distributed address "
+                                        f"tcp://host:port, found {scheduler!r}")
+
+
+def _connect(address: str) -> Any:
+    """A `distributed.Client` of the scheduler at `address`, or SchedulerError after
+    `CONNECT_TIMEOUT_S` (distributed's own default waits 30 s)."""
+    from distributed import Client
+
+    try:
+        return Client(address, timeout=CONNECT_TIMEOUT_S)
+    except OSError as err:  # distributed raises OSError for timeouts, refusals and unknown hosts
+        raise SchedulerError(address, f"expected a dask.distributed scheduler answering at {address}, "
+                                      f"found none within {CONNECT_TIMEOUT_S:g} s") from err
 
 
 def _resolve_cache(cache: Cache | str | os.PathLike | bool | None) -> Cache | None:
@@ -593,6 +642,8 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
     Raises:
         GraphError: the graph or its parameters are invalid (nothing ran).
         NodeError: a node rejected its parameters or input files while planning.
+        SchedulerError: `scheduler` is unknown, or no dask.distributed scheduler answers at
+            its address within `CONNECT_TIMEOUT_S`.
     """
     if not isinstance(graph, Graph):
         graph = Graph.load(graph)
@@ -600,6 +651,7 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
         graph.apply(dict(parameters))
     if device not in ("auto", "cpu", "cuda"):
         raise ValueError(f"device: expected auto, cpu or cuda, found {device!r}")
+    check_scheduler(scheduler)
     store = _resolve_cache(cache)
     mode = _progress_mode(progress)
     started = time.perf_counter()

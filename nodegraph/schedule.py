@@ -14,14 +14,16 @@ Each node runs in one of three modes:
 from __future__ import annotations
 
 import inspect
+import os
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from pathlib import Path
+from typing import Any, Callable, Iterable
 
 from .cache import Cache, make_key
 from .files import file_sha256
-from .errors import GraphError, GraphIssue
+from .errors import GraphError, GraphIssue, NodeError
 from .graph import Graph
-from .node import SEQUENCE, Node, wrap_error
+from .node import SEQUENCE, Node, _field_flag, wrap_error
 
 __all__ = ["Piece", "TaskPlan", "Plan", "plan_run", "chunk_bounds", "explain_miss", "parse_frames"]
 
@@ -234,10 +236,10 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         for span, out in spans:
             try:
                 if mode == "chunk" and _takes_frames(node):
-                    files = [hash_file(path) for path in node.input_files(range(*span))]
+                    files = _hash_inputs(node, node.input_files(range(*span)), hash_file)
                 else:
                     if all_files is None:
-                        all_files = [hash_file(path) for path in node.input_files()]
+                        all_files = _hash_inputs(node, node.input_files(), hash_file)
                     files = all_files
             except Exception as err:
                 raise wrap_error(node, err, bad_input=True) from err
@@ -262,6 +264,36 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             names.append(name)
         plan.by_node[nid] = names
     return plan
+
+
+def _hash_inputs(node: Node, paths: Iterable[Path], hash_file: Callable[[Path], str]) -> list[str]:
+    """The content hashes of the files a node reads; a missing or unreadable one is bad input
+    (exit 2) naming the node, its parameter and the path, not Python's raw OSError text."""
+    hashes = []
+    for path in paths:
+        try:
+            hashes.append(hash_file(path))
+        except OSError as err:
+            if isinstance(err, FileNotFoundError):
+                found = f"no file '{path}'"
+            elif isinstance(err, IsADirectoryError):
+                found = f"a folder '{path}'"
+            else:
+                found = f"'{path}' unreadable ({err.strerror or err})"
+            raise NodeError(node.node_id, node.type_name, f"expected a readable input file, found {found}",
+                            port=_input_param(node, path), bad_input=True) from err
+    return hashes
+
+
+def _input_param(node: Node, path: Path) -> str:
+    """The `input_file` parameter of `node` that names `path` (the only one when none does), or ""."""
+    names = [name for name in node.Params.model_fields if _field_flag(node.Params, name, "input_file", False)]
+    for name in names:
+        value = getattr(node.params, name)
+        values = value if isinstance(value, (list, tuple)) else [value]
+        if any(isinstance(v, str) and v and os.path.normpath(v) == os.path.normpath(path) for v in values):
+            return name
+    return names[0] if len(names) == 1 else ""
 
 
 def _takes_frames(node: Node) -> bool:

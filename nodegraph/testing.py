@@ -117,6 +117,8 @@ class Fail(Node):
     class Params(NodeParams):
         frames: list[int] = Param([0], description="Absolute frames that raise.")
         bad_input: bool = Param(False, description="Raise InputError instead of RuntimeError.")
+        message: str = Param("", description="Raise with this message in every failing chunk ('' = name the "
+                             "frame).")
 
     values = In(ParamSequence)
     passed = Out(ParamSequence)
@@ -124,9 +126,9 @@ class Fail(Node):
     def run(self, values: ParamSequence) -> dict:
         hit = [f for f in self.params.frames if f in self.frames]
         if hit and self.params.bad_input:
-            raise InputError("values", f"frame {hit[0]} is not acceptable")
+            raise InputError("values", self.params.message or f"frame {hit[0]} is not acceptable")
         if hit:
-            raise RuntimeError(f"deliberate failure at frame {hit[0]}")
+            raise RuntimeError(self.params.message or f"deliberate failure at frame {hit[0]}")
         return {"passed": values}
 
 
