@@ -20,15 +20,16 @@ __all__ = ["live_link_rows", "live_link_text", "LiveLinkCSV"]
 
 
 def live_link_rows(arkit: np.ndarray, head: np.ndarray, fps: float, start: str = "00:00:00:00",
-                   decimals: int = 6) -> list[list[str]]:
+                   decimals: int = 6, first_frame: int = 0) -> list[list[str]]:
     """The CSV's data rows.
 
     Args:
         arkit: (F, 52) ARKit weights in `ARKIT_NAMES` order (clipped to [0, 1] here).
         head: (F, 3, 3) face rotations in ARKit's camera frame.
         fps: the shot's frame rate (timecodes).
-        start: timecode of the first row.
+        start: timecode of the shot's frame 0.
         decimals: digits after the point of every value.
+        first_frame: the shot's frame of the first row (a run of frames a:b starts at a).
     Returns:
         F rows of 63 cells.
     """
@@ -37,7 +38,8 @@ def live_link_rows(arkit: np.ndarray, head: np.ndarray, fps: float, start: str =
     values = np.concatenate([weights, angles], axis=1) + 0.0  # + 0.0: no "-0.000000"
     cells = np.char.mod(f"%.{decimals}f", values)
     cells[cells == "-" + "0." + "0" * decimals] = "0." + "0" * decimals
-    return [[format_timecode(i, fps, start), str(BLEND_SHAPE_COUNT), *row] for i, row in enumerate(cells.tolist())]
+    return [[format_timecode(first_frame + i, fps, start), str(BLEND_SHAPE_COUNT), *row]
+            for i, row in enumerate(cells.tolist())]
 
 
 def live_link_text(rows: list[list[str]]) -> str:
@@ -55,8 +57,9 @@ class LiveLinkCSV(Node):
 
     class Params(NodeParams):
         path: str = Param(..., output_file=True, description="Destination .csv; '' = write nothing.")
-        start_timecode: str = Param("00:00:00:00", description="Timecode of the first frame, HH:MM:SS:FF at the "
-                                    "shot's frame rate (rounded to whole frames a second).")
+        start_timecode: str = Param("00:00:00:00", description="Timecode of the shot's frame 0, HH:MM:SS:FF at "
+                                    "the shot's frame rate (rounded to whole frames a second); a run of "
+                                    "--frames a:b starts at frame a's timecode.")
         decimals: int = Param(6, ge=3, le=9, description="Digits after the point (6: weights to 1e-6, below "
                               "any visible difference).")
 
@@ -84,7 +87,8 @@ class LiveLinkCSV(Node):
             raise InputError("performance", f"expected ARKit or ICT shape names, found "
                                             f"{performance.expression_names[:4]}")
         head = head_transforms(performance, camera)[:, :3, :3]
-        rows = live_link_rows(arkit, head, performance.fps, self.params.start_timecode, self.params.decimals)
+        rows = live_link_rows(arkit, head, performance.fps, self.params.start_timecode, self.params.decimals,
+                              first_frame=self.frames.start)
         write_text_atomic(self.params.path, live_link_text(rows))
         self.progress(1.0, f"wrote {len(rows)} frames to {self.params.path}")
         return {"files": files_value([self.params.path])}

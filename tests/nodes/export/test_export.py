@@ -103,6 +103,9 @@ def test_live_link_csv_round_trip(tmp_path, model, performance, camera):
     assert lines[1].startswith("01:00:00:00.000,") and lines[2].startswith("01:00:00:01.000,")
     take = read_live_link_csv(path)
     assert take.arkit.min() >= 0 and take.arkit.max() <= 1
+    later = tmp_path / "later.csv"  # a run of frames 30:42 carries its frames' timecodes
+    run_node(LiveLinkCSV, {"path": str(later)}, performance=performance, frames=range(30, 30 + FRAMES))
+    assert later.read_text().splitlines()[1].startswith("00:00:01:06.000,")  # 24 fps: frame 30 = 1 s 6 f
     back = run_node(LoadLiveLinkCSV, {"path": str(path), "fps": 24.0}, model=model)["performance"]
     names = model.expression_names
     plain = [i for i, n in enumerate(names) if not n.startswith(("browInnerUp", "cheekPuff"))]
