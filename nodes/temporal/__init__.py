@@ -6,7 +6,7 @@ the motion report (`report.py`).
 Importing the package registers the nodes only; torch is imported when a node runs.
 """
 
-from .nodes import Average, FlowInfill, Hybrid, PlateFlow, SelfFlow
+from .nodes import AdaptiveSmooth, Average, FlowInfill, Hybrid, PlateFlow, SelfFlow
 from .report import MotionReport
 
-__all__ = ["Average", "FlowInfill", "Hybrid", "MotionReport", "PlateFlow", "SelfFlow"]
+__all__ = ["AdaptiveSmooth", "Average", "FlowInfill", "Hybrid", "MotionReport", "PlateFlow", "SelfFlow"]
