@@ -1,7 +1,8 @@
 """The graph graphs/fit_video_temporal.json: valid, with fit_video.json's parameters (and a
 motion-report folder); on synthetic plates of a smooth head motion (unseen identity, unlike
 lighting) it writes fit_video.json's NPZ fields, the overlays and the motion report, and the
-hybrid smoothing lowers the jitter of the raw per-frame fit while staying near the truth."""
+adaptive smoothing lowers the jitter of the raw per-frame fit, pose and weights, while staying
+near the truth."""
 
 from __future__ import annotations
 
@@ -70,12 +71,16 @@ def test_fit_video_temporal_graph_on_a_smooth_synthetic_shot(tmp_path):
         assert not fit["failed"].any()
         smoothed = fit["rotation"]
     rows = {row[0]: row for row in json.loads((motion / "motion.json").read_text())["rows"]}
-    assert set(rows) == {"raw", "averaged", "hybrid"}
-    assert rows["hybrid"][1] < rows["raw"][1], rows  # rotation roughness (deg^2) goes down
-    raw = result.outputs["expression"]["fitted"].values[:, :9].reshape(-1, 3, 3)
+    assert set(rows) == {"raw", "averaged", "smoothed"}
+    assert rows["smoothed"][1] < rows["raw"][1], rows  # rotation roughness (deg^2) goes down
+    raw_fit = result.outputs["expression"]["fitted"].values
+    raw = raw_fit[:, :9].reshape(-1, 3, 3)
     err = _rotation_error_deg(smoothed, truth["rotation"])
     raw_err = _rotation_error_deg(raw, truth["rotation"])
-    print("rotation error deg raw", np.round(raw_err, 2), "hybrid", np.round(err, 2), "roughness", rows)
+    print("rotation error deg raw", np.round(raw_err, 2), "smoothed", np.round(err, 2), "roughness", rows)
     assert np.median(err) < np.median(raw_err) + 0.5
+    with np.load(out) as fit:  # the weights a user keeps are no rougher than the raw fit's
+        weights = fit["weights"].astype(np.float64)
+    assert np.mean(np.diff(weights, 2, axis=0) ** 2) <= np.mean(np.diff(raw_fit[:, 12:], 2, axis=0) ** 2) + 1e-12
     assert sorted(p.name for p in report.iterdir()) == [f"fit.{i:04d}.png" for i in range(FRAMES)]
     assert (motion / "motion.png").stat().st_size > 10_000
