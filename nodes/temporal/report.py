@@ -15,15 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph import (SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence, RigidSequence,
-                       Table)
+from nodegraph import (SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence,
+                       RigidSequence, Table)
 from nodegraph.files import files_value
 
 from ..report.plots import plot_rigid_curves, rigid_to_euler_translation
 from ..report.stabilization import write_table
 from .layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, ROTATION_NAMES, TRANSLATION_NAMES
 
-__all__ = ["rigid_curves", "matrix_curves", "roughness", "MotionReport"]
+__all__ = ["rigid_curves", "matrix_curves", "roughness", "weight_columns", "projected_landmarks", "plot_weight_curves",
+           "MotionReport"]
 
 _AXES = ("x", "y", "z")
 
@@ -90,21 +91,99 @@ def roughness(curve: np.ndarray) -> np.ndarray:
     return (second[ok] ** 2).mean(0) if ok.any() else np.full(curve.shape[1], np.nan)
 
 
-COLUMNS = ("series", "rough_rot_deg2", "rough_trans_cm2", "rot_err_deg", "trans_err_cm")
+COLUMNS = ("series", "rough_rot_deg2", "rough_trans_cm2", "rot_err_deg", "trans_err_cm", "rough_weights",
+           "weights_dev", "rough_lm_px2", "lm_dev_px")
+"""The table's columns: per series, roughness (mean squared second difference) of the Euler angles
+(deg^2), the translation (cm^2) and the weights (mean over shapes); the median error to the truth
+(deg, cm); the mean absolute deviation of the weights from the first series'; and, with a model
+and a camera, the projected 68 points' roughness (px^2, mean over points of |second difference|^2)
+and mean distance from the first series' points (px)."""
+
+_POSE_NAMES = set(MATRIX_NAMES + FIT_TRANSLATION_NAMES + ROTATION_NAMES + TRANSLATION_NAMES)
+
+
+def weight_columns(params: ParamSequence) -> list[int]:
+    """Indices of the columns that are not the pose (the expression weights)."""
+    return [i for i, n in enumerate(params.names) if n not in _POSE_NAMES]
+
+
+def projected_landmarks(params: ParamSequence, model: FaceModel, camera: Camera) -> np.ndarray:
+    """(F, 68, 2) pixels of the model's 68 landmark vertices posed by the fitted parameters (NaN where unsolved)."""
+    from scipy.spatial.transform import Rotation
+
+    from ..geometry.camera import project_points
+
+    names = list(params.names)
+    values = np.asarray(params.values, np.float64)
+    index = {n: i for i, n in enumerate(model.expression_names)}
+    weights = np.zeros((len(values), len(index)))
+    for j in weight_columns(params):
+        if names[j] in index:
+            weights[:, index[names[j]]] = values[:, j]
+    angles_ok = np.isfinite(values).all(1)
+    if all(n in names for n in MATRIX_NAMES):
+        rot = values[:, [names.index(n) for n in MATRIX_NAMES]].reshape(-1, 3, 3)
+        trans = values[:, [names.index(n) for n in FIT_TRANSLATION_NAMES]]
+    else:
+        rot = np.tile(np.eye(3), (len(values), 1, 1))
+        rot[angles_ok] = Rotation.from_rotvec(values[angles_ok][:, [names.index(n) for n in ROTATION_NAMES]]).as_matrix()
+        trans = values[:, [names.index(n) for n in TRANSLATION_NAMES]]
+    local = model.evaluate(np.nan_to_num(weights).astype(np.float32))[:, model.landmarks].astype(np.float64)
+    world = np.einsum("fij,flj->fli", np.nan_to_num(rot), local) + np.nan_to_num(trans)[:, None]
+    points = project_points(world, camera.world_to_camera, [camera.fx, camera.fy, camera.cx, camera.cy],
+                            [camera.k1, camera.k2] if (camera.k1 or camera.k2) else None)
+    points[~angles_ok] = np.nan
+    return points
+
+
+def plot_weight_curves(series: dict[str, np.ndarray], names: list[str], path: str | Path, *, count: int = 6,
+                       first_frame: int = 0, shaded: np.ndarray | None = None) -> Path:
+    """The `count` expression weights that move most in the first series, every series over time.
+
+    Args:
+        series: label -> (F, K) weights (the same K names in every series).
+        names: the K shape names.
+        path: PNG written.
+    Returns:
+        The written path.
+    """
+    from matplotlib.figure import Figure
+
+    from ..report.plots import SERIES_COLOURS, save_figure
+
+    first = next(iter(series.values()))
+    spread = np.nan_to_num(np.nanstd(first, axis=0)) if len(first) else np.zeros(len(names))
+    shown = np.argsort(-spread)[:count]
+    fig = Figure(figsize=(12, 2.2 * max(len(shown), 1)))
+    frames = np.arange(first_frame, first_frame + len(first))
+    for row, k in enumerate(shown):
+        ax = fig.add_subplot(max(len(shown), 1), 1, row + 1)
+        if shaded is not None and shaded.any():
+            for f in frames[shaded]:
+                ax.axvspan(f - 0.5, f + 0.5, color="0.9", lw=0)
+        for i, (label, weights) in enumerate(series.items()):
+            ax.plot(frames, weights[:, k], color=SERIES_COLOURS[i % len(SERIES_COLOURS)], lw=1.2, label=label)
+        ax.set_ylabel(names[k], fontsize=8)
+        if row == 0:
+            ax.legend(loc="upper right", fontsize=8)
+    fig.axes[-1].set_xlabel("frame") if fig.axes else None
+    fig.tight_layout()
+    return save_figure(fig, path)
 
 
 class MotionReport(Node):
-    """Plot the head's rotation and translation over time for several versions of a fit."""
+    """Plot the head's motion and the most moving expression weights over time for several versions of a fit."""
 
     type_name = "temporal.MotionReport"
-    version = 1
+    version = 2
     kind = SEQUENCE
     writes_files = True
     preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")
 
     class Params(NodeParams):
         folder: str = Param("motion_report", output_file=True, description="Output folder (created if missing): "
-                            "motion.png, motion.md, motion.json.")
+                            "motion.png (pose), weights.png (the six weights that move most), motion.md, "
+                            "motion.json.")
         labels: list[str] = Param([], description="Names of the connected series, in connection order; "
                                   "missing ones are series_1, series_2, ...")
 
@@ -113,12 +192,18 @@ class MotionReport(Node):
     truth_rigid = In(RigidSequence, optional=True, doc="Or the truth as model-to-world transforms (e.g. the skull of "
                                                        "a synthetic performance, rendered by a camera in its world).")
     failed = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0 where the fit failed (shaded).")
+    model = In(FaceModel, optional=True, doc="The fitted model: with `camera`, the projected 68 points' roughness "
+               "and deviation.")
+    camera = In(Camera, optional=True, doc="The plate's camera (with `model`).")
     files = Out(Files, doc="The files written.")
-    table = Out(Table, doc="Per series: roughness (mean squared second difference) of the Euler angles "
-                           "(deg^2) and translation (cm^2), and median error to the truth (deg, cm).")
+    table = Out(Table, doc="Per series (columns `COLUMNS`): roughness (mean squared second difference) of the "
+                           "Euler angles (deg^2), translation (cm^2) and weights; median error to the truth "
+                           "(deg, cm); the weights' deviation from the first series; with model and camera, "
+                           "the projected 68 points' roughness (px^2) and deviation (px).")
 
     def run(self, series: list[ParamSequence], truth: ParamSequence | None,
-            failed: ParamSequence | None, truth_rigid: RigidSequence | None = None) -> dict:
+            failed: ParamSequence | None, truth_rigid: RigidSequence | None = None,
+            model: FaceModel | None = None, camera: Camera | None = None) -> dict:
         if not series:
             raise InputError("series", "connect at least one parameter sequence, found none")
         labels = list(self.params.labels) + [f"series_{i + 1}" for i in range(len(self.params.labels), len(series))]
@@ -145,6 +230,18 @@ class MotionReport(Node):
         true_curves = rigid_curves(truth, "truth") if truth is not None else None
         if truth_rigid is not None:
             true_curves = matrix_curves(truth_rigid.matrices)
+        weights = {}
+        for name, seq in zip(labels, series):
+            by_name = {seq.names[j]: seq.values[:, j].astype(np.float64) for j in weight_columns(seq)}
+            weights[name] = by_name
+        shape_names = [n for n in weights[labels[0]] if all(n in w for w in weights.values())]
+        stacked = {name: np.stack([w[n] for n in shape_names], 1) if shape_names else np.zeros((frames, 0))
+                   for name, w in weights.items()}
+        if (model is None) != (camera is None):
+            raise InputError("camera" if camera is None else "model", "expected both 'model' and 'camera' "
+                             "connected (for the projected points), found one")
+        points = {name: projected_landmarks(seq, model, camera) for name, seq in zip(labels, series)} \
+            if model is not None else {}
         rows = []
         for name, (angles, trans) in curves.items():
             row = [name, float(np.nansum(roughness(angles))), float(np.nansum(roughness(trans)))]
@@ -154,6 +251,15 @@ class MotionReport(Node):
                 row += [float(np.nanmedian(rot_err)), float(np.nanmedian(trans_err))]
             else:
                 row += [float("nan"), float("nan")]
+            w = stacked[name]
+            row += [float(np.nanmean(roughness(w))) if w.shape[1] else float("nan"),
+                    float(np.nanmean(np.abs(w - stacked[labels[0]]))) if w.shape[1] else float("nan")]
+            if points:
+                p = points[name]
+                row += [float(np.nanmean(roughness(p.reshape(frames, -1)).reshape(-1, 2).sum(1))),
+                        float(np.nanmean(np.linalg.norm(p - points[labels[0]], axis=2)))]
+            else:
+                row += [float("nan"), float("nan")]
             rows.append([row[0]] + [round(v, 6) for v in row[1:]])
         table = Table(list(COLUMNS), rows)
         folder = Path(self.params.folder)
@@ -161,6 +267,11 @@ class MotionReport(Node):
         shown = ({"truth": true_curves} if true_curves is not None else {}) | curves
         png = plot_rigid_curves(shown, folder / "motion.png", first_frame=self.frames.start, shaded=mask,
                                 dashed="truth" if true_curves is not None else None)
-        self.progress(0.8, "motion plotted")
-        paths = [str(png)] + [str(f) for f in write_table(folder, "motion", table, digits=6)]
+        self.progress(0.6, "motion plotted")
+        paths = [str(png)]
+        if shape_names:
+            paths.append(str(plot_weight_curves(stacked, shape_names, folder / "weights.png",
+                                                first_frame=self.frames.start, shaded=mask)))
+            self.progress(0.8, "weights plotted")
+        paths += [str(f) for f in write_table(folder, "motion", table, digits=6)]
         return {"files": files_value(paths), "table": table}

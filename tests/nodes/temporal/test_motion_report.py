@@ -75,9 +75,43 @@ def test_motion_report_truth_as_rigid_transforms(tmp_path):
     series = [ParamSequence(noisy, list(matrix.names))]
     by_rigid = run_node(MotionReport, {"folder": str(tmp_path / "a")}, series=series, truth_rigid=RigidSequence(mats))
     by_params = run_node(MotionReport, {"folder": str(tmp_path / "b")}, series=series, truth=matrix)
-    assert by_rigid["table"].rows == by_params["table"].rows
+    np.testing.assert_equal(by_rigid["table"].rows, by_params["table"].rows)  # NaN columns included
     assert by_rigid["table"].rows[0][4] == pytest.approx(0.3, abs=1e-4)
     with pytest.raises(Exception, match="one port"):
         run_node(MotionReport, {"folder": str(tmp_path)}, series=series, truth=matrix, truth_rigid=RigidSequence(mats))
     with pytest.raises(Exception, match="truth_rigid.*frames|frames"):
         run_node(MotionReport, {"folder": str(tmp_path)}, series=series, truth_rigid=RigidSequence(mats[:4]))
+
+
+def test_motion_report_states_weights_and_projected_points(tmp_path):
+    """Weights' roughness and deviation, the 68 points' roughness (px^2) and deviation (px), weights.png."""
+    from nodegraph import Camera
+    from nodes.io.face_model import load_face_model
+
+    model = load_face_model(region="face", max_vertices=500)
+    frames = 12
+    t = np.arange(frames)
+    rot = Rotation.from_euler("YXZ", np.stack([0.1 + 0 * t, 0 * t, 0 * t], 1)).as_matrix()
+    rot = np.diag([1.0, -1.0, -1.0]) @ rot  # facing the camera
+    trans = np.tile([0.0, 0.0, 60.0], (frames, 1))
+    weights = np.zeros((frames, len(model.expression_names)))
+    jaw = model.expression_names.index("jawOpen")
+    weights[:, jaw] = 0.3 + 0.2 * np.sin(t / 2)
+    names = list(MATRIX_NAMES) + ["tx", "ty", "tz"] + list(model.expression_names)
+    smooth = ParamSequence(np.concatenate([rot.reshape(frames, 9), trans, weights], 1).astype(np.float32), names)
+    zig = smooth.values.copy()
+    zig[:, 12 + jaw] += 0.05 * (-1.0) ** t  # a jittering jaw
+    rough = ParamSequence(zig, names)
+    cam = Camera.from_fov(256, 256, 40.0)
+    out = run_node(MotionReport, {"folder": str(tmp_path), "labels": ["raw", "smooth"]}, series=[rough, smooth],
+                   model=model, camera=cam)
+    rows = {r[0]: dict(zip(out["table"].columns, r)) for r in out["table"].rows}
+    assert rows["smooth"]["weights_dev"] == pytest.approx(0.05 / len(model.expression_names), rel=1e-3)
+    assert rows["raw"]["weights_dev"] == 0.0
+    expected = np.mean(np.diff(np.sin(t / 2), 2) ** 2)  # the smooth jaw's roughness per unit amplitude^2
+    assert rows["raw"]["rough_weights"] > 10 * rows["smooth"]["rough_weights"]
+    assert rows["smooth"]["rough_weights"] == pytest.approx(0.04 * expected / len(model.expression_names), rel=1e-2)
+    assert rows["raw"]["rough_lm_px2"] > 2 * rows["smooth"]["rough_lm_px2"] and rows["smooth"]["lm_dev_px"] > 0.01
+    assert (tmp_path / "weights.png").stat().st_size > 10_000
+    with pytest.raises(Exception, match="both 'model' and 'camera'"):
+        run_node(MotionReport, {"folder": str(tmp_path)}, series=[smooth], model=model)
