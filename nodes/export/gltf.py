@@ -17,12 +17,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pydantic import field_validator
 
-from nodegraph import SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, Performance
-from nodegraph.files import atomic_path, check_output_suffix, files_value
+from nodegraph import Camera, FaceModel, Param, Performance
+from nodegraph.files import atomic_path
 
-from .scene import blendshapes, check_performance, head_transforms
+from .scene import SceneWriter, SceneWriterParams, blendshapes, head_transforms
 from .usd import vertex_normals
 
 __all__ = ["split_uv_seams", "write_gltf_animation", "GltfAnimation"]
@@ -142,37 +141,15 @@ def write_gltf_animation(path: str | Path, model: FaceModel, performance: Perfor
         document.save_binary(str(tmp))
 
 
-class GltfAnimation(Node):
+class GltfAnimation(SceneWriter):
     """Write the fitted head as binary glTF 2.0: mesh, ARKit-named morph targets, weight and head animation."""
 
     type_name = "export.GltfAnimation"
     version = 1
-    kind = SEQUENCE
-    writes_files = True
 
-    class Params(NodeParams):
+    class Params(SceneWriterParams):
+        suffixes = (".glb",)
         path: str = Param(..., output_file=True, description="Destination .glb; '' = write nothing.")
-        asymmetry_shapes: bool = Param(True, description="Also write browInnerUpAsymmetry and "
-                                       "cheekPuffAsymmetry, so ICT's separate left and right halves of those "
-                                       "shapes play back exactly (off: the 52 ARKit shapes only, halves averaged).")
 
-        @field_validator("path")
-        @classmethod
-        def _glb(cls, value: str) -> str:
-            return check_output_suffix(value, (".glb",), allow_empty=True)
-
-    performance = In(Performance, doc="Pose and weights of the model's shapes.")
-    model = In(FaceModel, doc="The fitted head (fit.EstimateIdentity's fitted_model: identity applied).")
-    camera = In(Camera, optional=True, doc="The plate's camera: the head moves relative to it (y up, the camera "
-                "at the origin looking down -z); absent: in the performance's world.")
-    files = Out(Files, doc="The .glb written (none for an empty path).")
-
-    def run(self, performance: Performance, model: FaceModel, camera: Camera | None = None) -> dict[str, Files]:
-        if not self.params.path:
-            return {"files": files_value([])}
-        problem = check_performance(performance, model)
-        if problem:
-            raise InputError("performance", problem)
-        write_gltf_animation(self.params.path, model, performance, camera, asymmetry=self.params.asymmetry_shapes)
-        self.progress(1.0, f"wrote {performance.num_frames} frames to {self.params.path}")
-        return {"files": files_value([self.params.path])}
+    def write(self, path: Path, model: FaceModel, performance: Performance, camera: Camera | None) -> None:
+        write_gltf_animation(path, model, performance, camera, asymmetry=self.params.asymmetry_shapes)

@@ -10,14 +10,18 @@ video plays in front of the file's default view; without one, in the performance
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
+from pydantic import field_validator
 
-from nodegraph import Camera, FaceModel, Performance
+from nodegraph import SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, Performance
+from nodegraph.files import check_output_suffix, files_value
 
 from ..io.arkit import OPENCV_TO_ARKIT, shape_basis
 
-__all__ = ["head_transforms", "Blendshapes", "blendshapes", "check_performance"]
+__all__ = ["head_transforms", "Blendshapes", "blendshapes", "check_performance", "SceneWriterParams", "SceneWriter"]
 
 
 def check_performance(performance: Performance, model: FaceModel) -> str:
@@ -77,3 +81,46 @@ def blendshapes(performance: Performance, model: FaceModel, *, asymmetry: bool =
     k, v = model.expression_deltas.shape[:2]
     offsets = (b @ model.expression_deltas.reshape(k, -1).astype(np.float64)).reshape(-1, v, 3)
     return Blendshapes(out_names, offsets.astype(np.float32), (w @ a.T).astype(np.float32))
+
+
+class SceneWriterParams(NodeParams):
+    """Parameters of the head-and-blendshape writers; a subclass sets `suffixes` (and the path's description)."""
+
+    suffixes: ClassVar[tuple[str, ...]] = ()
+
+    path: str = Param(..., output_file=True, description="Destination file; '' = write nothing.")
+    asymmetry_shapes: bool = Param(True, description="Also write browInnerUpAsymmetry and cheekPuffAsymmetry, so "
+                                   "ICT's separate left and right halves of those shapes play back exactly (off: "
+                                   "the 52 ARKit shapes only, halves averaged).")
+
+    @field_validator("path")
+    @classmethod
+    def _suffix(cls, value: str) -> str:
+        return check_output_suffix(value, cls.suffixes, allow_empty=True)
+
+
+class SceneWriter(Node):
+    """What the USD and glTF writers share: ports, checks, the empty path; a subclass defines `write`."""
+
+    kind = SEQUENCE
+    writes_files = True
+    Params = SceneWriterParams
+
+    performance = In(Performance, doc="Pose and weights of the model's shapes.")
+    model = In(FaceModel, doc="The fitted head (fit.EstimateIdentity's fitted_model: identity applied).")
+    camera = In(Camera, optional=True, doc="The plate's camera: the head moves relative to it (y up, the camera "
+                "at the origin looking down -z); absent: in the performance's world.")
+    files = Out(Files, doc="The file written (none for an empty path).")
+
+    def write(self, path: Path, model: FaceModel, performance: Performance, camera: Camera | None) -> None:
+        raise NotImplementedError
+
+    def run(self, performance: Performance, model: FaceModel, camera: Camera | None = None) -> dict[str, Files]:
+        if not self.params.path:
+            return {"files": files_value([])}
+        problem = check_performance(performance, model)
+        if problem:
+            raise InputError("performance", problem)
+        self.write(Path(self.params.path), model, performance, camera)
+        self.progress(1.0, f"wrote {performance.num_frames} frames to {self.params.path}")
+        return {"files": files_value([self.params.path])}
