@@ -28,7 +28,10 @@ Nodes that write files (savers, reports) are cached like any other node, and the
 counts as a hit only while every file they wrote is still on disk exactly as written: same
 absolute path, and same size and mtime, or, when the mtime moved, the same sha256. A file
 that is missing or differs is restored from the entry's copy when the writer's files were
-small enough to keep one (`COPY_LIMIT`), else the writer runs again.
+small enough to keep one (`COPY_LIMIT`), else the writer runs again. Inside a run, writers'
+files are staged until the run succeeds (`nodegraph.staging`): the record and the copies are
+taken from the staged files, whose size and mtime the destinations keep when the run moves
+them there by a rename; restored files are staged the same way.
 """
 
 from __future__ import annotations
@@ -46,7 +49,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .files import file_sha256, write_text_atomic
+from .files import file_sha256, staged_location, write_bytes_atomic, write_text_atomic
+from .staging import unstaged
 from .types import Files, PortType, port_type_by_name
 
 __all__ = ["DEFAULT_CACHE", "MARKER", "COPY_LIMIT", "cache_dir_from_env", "canonical_json", "make_key",
@@ -233,12 +237,16 @@ class Cache:
     def _written_path(self, key: str) -> Path:
         return self.root / "written" / key[:2] / f"{key}.json"
 
-    def record_written(self, key: str, files: Files) -> None:
+    def record_written(self, key: str, files: Files, where: Mapping[str, str] | None = None) -> None:
         """Remember each file a writer wrote under `key`: path as given, absolute path,
-        size, mtime (ns) and sha256 (the one the writer computed from what it wrote)."""
+        size, mtime (ns) and sha256 (the one the writer computed from what it wrote).
+
+        `where`: absolute path -> where the file is now (a run's staged copy, whose size and
+        mtime its destination gets when the run commits it by a rename)."""
+        where = where or {}
         items = []
         for path, sha in zip(files.paths, files.sha256):
-            st = os.stat(path)
+            st = os.stat(where.get(os.path.abspath(path), path))
             items.append({"path": path, "abs": os.path.abspath(path), "size": st.st_size,
                           "mtime_ns": st.st_mtime_ns, "sha256": sha})
         self._mark()
@@ -308,15 +316,8 @@ class Cache:
             if hashlib.sha256(data).hexdigest() != manifest["files"][copies[path]]["sha256"]:
                 self._remove(key)
                 raise CorruptEntry(f"cache entry {key[:12]}: the copy of '{path}' does not match its manifest")
-            target = Path(path)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
-            try:
-                tmp.write_bytes(data)
-                os.replace(tmp, target)
-            finally:
-                tmp.unlink(missing_ok=True)
-            st = os.stat(target)
+            write_bytes_atomic(path, data)  # staged inside a run (see nodegraph.staging)
+            st = os.stat(staged_location(path))  # a rename keeps size and mtime
             for item in items:
                 if item["path"] == path:
                     item["size"], item["mtime_ns"] = st.st_size, st.st_mtime_ns
@@ -374,14 +375,16 @@ class Cache:
 
     # -- writing -------------------------------------------------------------------------
     def store(self, key: str, values: Mapping[str, PortType], description: Mapping[str, Any],
-              copies: list[str] | None = None) -> None:
+              copies: list[str] | None = None, where: Mapping[str, str] | None = None) -> None:
         """Write an entry atomically (temp folder + rename); a concurrent twin is kept.
 
         Args:
             key, values, description: the entry.
             copies: paths of files a writer wrote, copied into the entry so that they can be
                 restored without running it again.
+            where: absolute path -> where a copied file is now (a run's staged copy).
         """
+        where = where or {}
         final = self.entry_dir(key)
         if (final / "manifest.json").exists():
             return
@@ -402,7 +405,7 @@ class Cache:
             copy_list = []
             for index, path in enumerate(copies or []):
                 name = f"copy_{index}"
-                shutil.copyfile(path, tmp / name)
+                shutil.copyfile(where.get(os.path.abspath(path), path), tmp / name)
                 files[name] = {"size": (tmp / name).stat().st_size, "sha256": file_sha256(tmp / name, memo=False)}
                 copy_list.append({"path": path, "file": name})
             manifest = {"key": key, "created": time.time(), "files": files, "ports": ports,
@@ -567,4 +570,5 @@ def _safe(name: str) -> str:
 
 
 def _write_json_atomic(path: Path, value: Any) -> None:
-    write_text_atomic(path, json.dumps(value, indent=1, sort_keys=True, default=str))
+    with unstaged():  # the cache's own records are never held back with a run's outputs
+        write_text_atomic(path, json.dumps(value, indent=1, sort_keys=True, default=str))

@@ -1,4 +1,9 @@
-"""Small file helpers shared by the framework: atomic text writes and content hashes."""
+"""Small file helpers shared by the framework: atomic text writes and content hashes.
+
+Inside a writer's task of a run, every helper here writes into the run's staging folder
+instead of onto the destination, and reads (hashes) the staged bytes: see `nodegraph.staging`.
+Writers that write through these helpers get all-or-nothing outputs for free.
+"""
 
 from __future__ import annotations
 
@@ -9,21 +14,36 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Mapping, TYPE_CHECKING, Iterator, Sequence
 
+from . import staging as _staging
+
 if TYPE_CHECKING:
     from .types import Files
 
-__all__ = ["write_text_atomic", "write_npz_atomic", "file_sha256", "atomic_path", "files_value",
-           "check_output_suffix"]
+__all__ = ["write_text_atomic", "write_npz_atomic", "write_bytes_atomic", "file_sha256", "atomic_path",
+           "files_value", "check_output_suffix", "staged_location"]
 
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
+
+
+def staged_location(path: str | os.PathLike) -> Path:
+    """Where the bytes of `path` are now: in a writer's task of a run, the staged copy of a
+    file it wrote (see `nodegraph.staging`); else `path` itself."""
+    return _staging.location(path)
+
+
+def _destination(path: str | os.PathLike) -> Path:
+    """The path to write for `path`: its staged location inside a writer's task, else `path`."""
+    stage = _staging.current()
+    return stage.stage(path) if stage is not None else Path(path)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write `text` to `path` through a temp file in the same folder and a rename.
 
     Parent folders are created; on any error the temp file is removed and `path` is untouched.
+    Inside a writer's task of a run the file is staged (see the module docstring).
     """
-    path = Path(path)
+    path = _destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -45,6 +65,7 @@ def file_sha256(path: str | os.PathLike, *, memo: bool = True) -> str:
             hashes what is on disk now (e.g. a file just written, whose size and mtime may
             equal those of the previous version).
     """
+    path = staged_location(path)
     st = os.stat(path)
     key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
     if memo and key in _FILE_HASHES:
@@ -66,7 +87,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     The temporary name keeps the extension of `path` (writers pick formats by extension) and
     lives in the same folder (so the replace is atomic). Parent folders are created. The
     file gets the usual permissions (0o666 minus the umask), not mkstemp's 0o600. On an
-    exception the temporary file is removed and `path` is left untouched.
+    exception the temporary file is removed and `path` is left untouched. Inside a writer's
+    task of a run, the file lands in the run's staging folder instead (see the module docstring).
 
     Example:
         >>> import tempfile
@@ -76,7 +98,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         >>> target.read_text()
         'hello'
     """
-    path = Path(path)
+    path = _destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
     os.close(fd)
@@ -90,6 +112,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """Write `data` to `path` through a temp file and a rename (`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def files_value(paths: Sequence[str | os.PathLike]) -> Files:

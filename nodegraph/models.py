@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import difflib
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -155,17 +154,11 @@ def save_model(model: "TorchModel", path: str | os.PathLike) -> None:
     if path.suffix.lower() == ".safetensors":
         save_model_safetensors(model, path)
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from .files import atomic_path  # staged inside a writer's task (see nodegraph.staging)
+
     arrays = {"__port_type__": np.array(type(model).type_name), **model.to_arrays()}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
 
 
 def load_model(path: str | os.PathLike) -> "TorchModel":
@@ -214,8 +207,9 @@ def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None
 
     from safetensors.numpy import save_file
 
+    from .files import atomic_path  # staged inside a writer's task (see nodegraph.staging)
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     norm = {key: _json_array(np.asarray(value)) for key, value in sorted(model.normalization.items())}
     metadata = {"format": SAFETENSORS_FORMAT, "architecture": model.architecture,
                 "config": json.dumps(model.config, sort_keys=True),
@@ -223,18 +217,8 @@ def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None
     for key, value in norm.items():
         metadata[f"normalization.{key}"] = json.dumps(value)
     tensors = {key: np.ascontiguousarray(value) for key, value in model.state.items()}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        save_file(tensors, tmp, metadata=metadata)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # the usual permissions, not mkstemp's 0o600
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:  # usual permissions, temp file in the folder, then a rename
+        save_file(tensors, str(tmp), metadata=metadata)
 
 
 def load_model_safetensors(path: str | os.PathLike) -> "TorchModel":

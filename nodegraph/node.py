@@ -234,7 +234,9 @@ def Param(default: Any = ..., *, description: str = "", affects_output: bool = T
             holds the files' content hash instead of the path. A relative path written in a
             graph file is resolved against the graph file's folder.
         output_file: the value is a path (or pattern, or folder) the node writes; resolved
-            like `input_file` paths.
+            like `input_file` paths. Before a run, every output path is checked against every
+            input path (`nodegraph.pathcheck`); writers write through `nodegraph.files` so that
+            their files are held back until the whole run succeeded (`nodegraph.staging`).
         constraints: pydantic bounds (`ge`, `gt`, `le`, `lt`, `min_length`, ...).
     """
     extra = {"affects_output": affects_output, "input_file": input_file, "output_file": output_file}

@@ -3,6 +3,10 @@
 Every task catches its own failure and returns it as a record, so one failing node never
 stops independent branches; tasks below a failure are skipped. The run then reports each
 failed chunk (node id, frames, exception, traceback, input keys) and ends non-zero.
+
+Outputs are all-or-nothing (`nodegraph.staging`): writer tasks write into staging folders
+next to their destinations, and the run moves the staged files onto the destinations only
+when every task succeeded; a failed run deletes them ("nothing written: ... held back").
 """
 
 from __future__ import annotations
@@ -23,8 +27,10 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from .cache import COPY_LIMIT, Cache, CorruptEntry, cache_dir_from_env
 from .errors import NodeError, SchedulerError
 from .graph import Graph
-from .node import Node, execute, format_exception, task_seed
+from .node import Node, _field_flag, execute, format_exception, task_seed
+from .pathcheck import check_output_paths
 from .schedule import Plan, TaskPlan, explain_miss, plan_run
+from .staging import StagedFile, commit, discard, new_token, publish, staging
 from .types import Files, PortType
 
 __all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "check_scheduler", "SCHEDULERS",
@@ -59,6 +65,7 @@ class TaskSpec:
     restore: bool = False
     device: str = "cpu"
     run_log: tuple[dict[str, Any], ...] = ()
+    stage: str = ""  # the run's staging token: a writer's files are held back until the run commits
 
 
 @dataclass
@@ -72,6 +79,7 @@ class TaskResult:
     values: dict[str, PortType] | None = None
     error: dict[str, Any] | None = None
     seconds: float = 0.0
+    staged: tuple[StagedFile, ...] = ()  # a writer's files held back in staging folders
 
     def meta(self) -> dict[str, Any]:
         return {"name": self.name, "node": self.node, "frames": list(self.frames), "status": self.status,
@@ -197,21 +205,13 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
     if spec.progress == "json" and warnings.showwarning is not _json_warning \
             and multiprocessing.current_process().name != "MainProcess":
         warnings.showwarning = _json_warning  # a worker process: its stderr is the farm log too
-    node = None
+    stage = None
     try:
-        node = spec.node_cls(spec.params, node_id=spec.node)
-        node.run_log = [dict(record) for record in spec.run_log]
-        inputs: dict[str, Any] = {}
-        for port, pieces in spec.inputs:
-            value = _COMBINED.get(deps, pieces, pieces[0][2] >= 0)
-            name, many, _ = port.partition("#")
-            if many:  # a list port: one value per connection, in edge order ("port#0", "port#1", ...)
-                inputs.setdefault(name, []).append(value)
-            else:
-                inputs[name] = value
-        values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec),
-                         seed=task_seed(spec.key), device=spec.device)
-        values = _trim(node, values, spec.frames, spec.out_frames)
+        # Files that upstream writers staged in this run are read at their paths by their
+        # readers (report.Html embeds report PNGs): put them there now, undoably.
+        publish([entry for dep in deps for entry in dep.staged])
+        with staging(spec.stage if spec.writes else None) as stage:
+            values = _compute(spec, deps)
     except Exception as err:
         error = err if isinstance(err, NodeError) else NodeError(
             spec.node, spec.node_cls.type_name, f"{type(err).__name__}: {err}")
@@ -227,11 +227,30 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
             "time": time.time(),
         }
         return TaskResult(spec.name, spec.node, spec.out_frames, "failed", error=record,
-                          seconds=time.perf_counter() - start)
+                          seconds=time.perf_counter() - start,
+                          staged=tuple(stage.entries()) if stage is not None else ())
+    staged = tuple(stage.entries()) if stage is not None else ()
     if spec.cacheable and spec.cache_root is not None:
-        _STORES.submit(_store_task, spec, values)
+        _STORES.submit(_store_task, spec, values, {entry.final: entry.staged for entry in staged})
     return TaskResult(spec.name, spec.node, spec.out_frames, "executed", values,
-                      seconds=time.perf_counter() - start)
+                      seconds=time.perf_counter() - start, staged=staged)
+
+
+def _compute(spec: TaskSpec, deps: Sequence[TaskResult]) -> dict[str, PortType]:
+    """The node's values for one task: its inputs joined from `deps`, run, trimmed to the chunk."""
+    node = spec.node_cls(spec.params, node_id=spec.node)
+    node.run_log = [dict(record) for record in spec.run_log]
+    inputs: dict[str, Any] = {}
+    for port, pieces in spec.inputs:
+        value = _COMBINED.get(deps, pieces, pieces[0][2] >= 0)
+        name, many, _ = port.partition("#")
+        if many:  # a list port: one value per connection, in edge order ("port#0", "port#1", ...)
+            inputs.setdefault(name, []).append(value)
+        else:
+            inputs[name] = value
+    values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), _progress_callback(spec),
+                     seed=task_seed(spec.key), device=spec.device)
+    return _trim(node, values, spec.frames, spec.out_frames)
 
 
 def compute_logged_task(spec: TaskSpec, count: int, *args: Any) -> TaskResult:
@@ -240,18 +259,23 @@ def compute_logged_task(spec: TaskSpec, count: int, *args: Any) -> TaskResult:
     return compute_task(dataclasses.replace(spec, run_log=tuple(args[count:])), *args[:count])
 
 
-def _store_task(spec: TaskSpec, values: dict[str, PortType]) -> None:
-    """Write a task's values (and a writer's file record) into the cache."""
+def _store_task(spec: TaskSpec, values: dict[str, PortType], where: Mapping[str, str] | None = None) -> None:
+    """Write a task's values (and a writer's file record) into the cache.
+
+    `where`: absolute path -> staged copy of each file the writer wrote (see
+    `nodegraph.staging`): the record holds the size and mtime the destination gets when the run
+    commits the file by a rename, so the next run finds it intact."""
     store = Cache(spec.cache_root)
     written = _written_files(values) if spec.writes else None
+    where = dict(where or {})
     try:
         copies = None
         if written is not None:
-            sizes = [os.stat(path).st_size for path in written.paths]
+            sizes = [os.stat(where.get(os.path.abspath(path), path)).st_size for path in written.paths]
             copies = list(written.paths) if sum(sizes) <= COPY_LIMIT else None
-        store.store(spec.key, values, spec.description, copies=copies)
+        store.store(spec.key, values, spec.description, copies=copies, where=where)
         if written is not None:
-            store.record_written(spec.key, written)
+            store.record_written(spec.key, written, where=where)
     except OSError as err:
         warnings.warn(f"could not cache {spec.name}: {err}", RuntimeWarning)
 
@@ -332,21 +356,30 @@ def load_task(spec: TaskSpec) -> TaskResult:
     start = time.perf_counter()
     store = Cache(spec.cache_root)
     status = "cached"
+    stage = None
     try:
-        if spec.restore:
-            status = "restored" if store.restore_written(spec.key) else "cached"
+        with staging(spec.stage if spec.restore else None) as stage:  # restored files are held back too
+            if spec.restore:
+                status = "restored" if store.restore_written(spec.key) else "cached"
         values = store.load(spec.key)
     except (CorruptEntry, KeyError) as err:
-        return TaskResult(spec.name, spec.node, spec.out_frames, "corrupt", error={"cause": str(err)})
+        return TaskResult(spec.name, spec.node, spec.out_frames, "corrupt", error={"cause": str(err)},
+                          staged=tuple(stage.entries()) if stage is not None else ())
     except OSError as err:
         return TaskResult(spec.name, spec.node, spec.out_frames, "corrupt",
-                          error={"cause": f"cannot restore written files: {err}"})
+                          error={"cause": f"cannot restore written files: {err}"},
+                          staged=tuple(stage.entries()) if stage is not None else ())
     return TaskResult(spec.name, spec.node, spec.out_frames, status, values,
-                      seconds=time.perf_counter() - start)
+                      seconds=time.perf_counter() - start, staged=tuple(stage.entries()) if stage is not None else ())
 
 
 def task_meta(result: TaskResult) -> dict[str, Any]:
     return result.meta()
+
+
+def task_staged(result: TaskResult) -> tuple[StagedFile, ...]:
+    """The files a writer task held back (what the run commits or discards)."""
+    return result.staged
 
 
 @dataclass
@@ -354,9 +387,12 @@ class RunResult:
     """Outcome of a run.
 
     Attributes:
-        outputs: target node id -> output port -> value (chunks concatenated).
+        outputs: target node id -> output port -> value (chunks concatenated); a failed run
+            leaves out the writers it held back.
         tasks: one record per scheduled task: name, node, frames, status, error, seconds.
         plan: the plan that ran.
+        held_back: writer nodes whose files a failed run discarded (outputs are all-or-nothing:
+            a run writes files only when every task succeeded), with `held_back_cause`.
     """
 
     outputs: dict[str, dict[str, PortType]]
@@ -364,6 +400,8 @@ class RunResult:
     plan: Plan
     seconds: float = 0.0
     failures: list[dict[str, Any]] = field(default_factory=list)
+    held_back: list[str] = field(default_factory=list)
+    held_back_cause: str = ""  # "node 'load' failed", or "tasks were skipped"
 
     def count(self, status: str, node: str | None = None) -> int:
         return sum(1 for t in self.tasks if t["status"] == status and (node is None or t["node"] == node))
@@ -412,6 +450,9 @@ class RunResult:
                  f"{self.count('failed')} failed, {self.count('skipped')} skipped ({self.seconds:.2f} s)"]
         for group in self.failure_groups():
             lines.append(f"FAILED {self.failure_line(group)}")
+        if self.held_back:
+            lines.append(f"nothing written: {len(self.held_back)} writer(s) held back "
+                         f"({', '.join(self.held_back)}) because {self.held_back_cause}")
         return "\n".join(lines)
 
 
@@ -458,10 +499,10 @@ class _Reporter:
         if self.mode == "json":
             self.emit({"event": "end", "executed": result.executed(), "cached": result.count("cached"),
                        "failed": result.count("failed"), "skipped": result.count("skipped"),
-                       "seconds": round(result.seconds, 3)})
+                       "held_back": result.held_back, "seconds": round(result.seconds, 3)})
 
 
-def _specs(plan: Plan, names: list[str], cache: Cache | None, progress: str) -> dict[str, TaskSpec]:
+def _specs(plan: Plan, names: list[str], cache: Cache | None, progress: str, stage: str = "") -> dict[str, TaskSpec]:
     full = (plan.frames.start, plan.frames.stop)
     specs = {}
     for name in names:
@@ -473,7 +514,8 @@ def _specs(plan: Plan, names: list[str], cache: Cache | None, progress: str) -> 
                                plan.graph.resolved_params(task.node), task.frames, task.out_frames, full,
                                inputs, task.key, task.description,
                                str(cache.root) if cache is not None else None, task.cacheable, progress,
-                               writes=task.writes, restore=task.restore, device=task.device)
+                               writes=task.writes, restore=task.restore, device=task.device,
+                               stage=stage if task.writes else "")
     return specs
 
 
@@ -489,6 +531,8 @@ def _dask_graph(plan: Plan, names: list[str], specs: dict[str, TaskSpec]) -> dic
         else:
             dsk[name] = (compute_task, specs[name], *task.deps)
         dsk[f"meta|{name}"] = (task_meta, name)
+        if task.writes and (not task.hit or task.restore):
+            dsk[f"stage|{name}"] = (task_staged, name)
     return dsk
 
 
@@ -506,17 +550,23 @@ def _ancestors(plan: Plan, name: str) -> list[str]:
 
 def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], scheduler: Any,
              reporter: _Reporter, workers: int | None,
-             resources: Mapping[str, dict[str, float]] | None = None) -> tuple[list[dict], list[TaskResult]]:
-    keys = meta_keys + value_keys
+             resources: Mapping[str, dict[str, float]] | None = None
+             ) -> tuple[list[dict], list[TaskResult], list[StagedFile]]:
+    """Run the dask graph; return the meta records, the values asked for, and every file the
+    run's writers staged (`stage|` keys)."""
+    stage_keys = [key for key in dsk if key.startswith("stage|")]
+    keys = meta_keys + value_keys + stage_keys
+    count = len(meta_keys) + len(value_keys)
     if isinstance(scheduler, str) and scheduler in SCHEDULERS and all(
-            task[0] in (load_task, task_meta) for task in dsk.values()):
+            task[0] in (load_task, task_meta, task_staged) for task in dsk.values()):
         # Everything is cached: read the entries in-process (no dask import, no pool start-up).
         loaded: dict[str, TaskResult] = {}
         for key, task in dsk.items():
             if task[0] is load_task:
                 loaded[key] = load_task(task[1])
                 reporter.update(loaded[key].meta())
-        return [loaded[k.partition("|")[2]].meta() for k in meta_keys], [loaded[k] for k in value_keys]
+        return ([loaded[k.partition("|")[2]].meta() for k in meta_keys], [loaded[k] for k in value_keys],
+                [entry for k in stage_keys for entry in loaded[k.partition("|")[2]].staged])
     if isinstance(scheduler, str) and scheduler in SCHEDULERS:
         import dask.local
         from dask.callbacks import Callback
@@ -545,7 +595,8 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
         finally:
             _STORES.active = _COMBINED.active = False
             _COMBINED.clear()
-        return list(out[: len(meta_keys)]), list(out[len(meta_keys):])
+        return (list(out[: len(meta_keys)]), list(out[len(meta_keys):count]),
+                [entry for staged in out[count:] for entry in staged])
     from distributed import Client, as_completed
 
     client = scheduler if isinstance(scheduler, Client) else _connect(scheduler)
@@ -568,10 +619,11 @@ def _execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], s
             reporter.update(future.result())
         metas = client.gather(metas_f)
         values = client.gather(values_f)
+        staged = client.gather([submitted[k] for k in stage_keys])
     finally:
         if client is not scheduler:
             client.close()
-    return metas, values
+    return metas, values, [entry for files in staged for entry in files]
 
 
 def check_scheduler(scheduler: Any) -> None:
@@ -662,21 +714,31 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
 def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: Cache | None,
          outputs: Iterable[str] | None, force: Iterable[str], mode: str, workers: int | None, device: str,
          started: float) -> RunResult:
+    token = new_token()  # names this run's staging folders (see nodegraph.staging)
     for attempt in range(2):
         plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
                         force=force, device=device)
+        if attempt == 0:
+            check_output_paths(plan)  # outputs that would destroy inputs, unwritable folders: exit 2
         names = plan.needed()
-        specs = _specs(plan, names, store, mode)
+        specs = _specs(plan, names, store, mode, token)
         dsk = _dask_graph(plan, names, specs)
         value_names = [t for node in plan.targets for t in plan.by_node[node]]
         reporter = _Reporter(plan, names, mode)
         gpu_tasks = {n for n in names if not plan.tasks[n].hit and plan.tasks[n].device != "cpu"
                      and plan.nodes[plan.tasks[n].node].resources}
+        writers = _writing(plan, names)
         if scheduler in _IN_PROCESS:
             _preload([m for n in names if not plan.tasks[n].hit for m in plan.nodes[plan.tasks[n].node].preload])
-        metas, results = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter, workers,
-                                  {n: dict(plan.nodes[plan.tasks[n].node].resources) for n in gpu_tasks})
+        try:
+            metas, results, staged = _execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter,
+                                              workers, {n: dict(plan.nodes[plan.tasks[n].node].resources)
+                                                        for n in gpu_tasks})
+        except BaseException:
+            discard([], token, _destinations(plan, writers))
+            raise
         if any(m["status"] == "corrupt" for m in metas) and attempt == 0:
+            discard(staged, token, _destinations(plan, writers))
             reporter.close(RunResult({}, metas, plan))
             continue  # corrupt entries were removed: plan again, they are now misses
         break
@@ -690,10 +752,50 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
         for port, decl in plan.nodes[node].outputs.items():
             out[node][port] = _combine([p.values[port] for p in parts], decl.per_frame)
     failures = [m["error"] for m in metas if m["status"] == "failed"]
-    result = RunResult(out, metas, plan, time.perf_counter() - started, failures)
+    held_back: list[str] = []
+    cause = ""
+    if not failures and all(m["status"] in _OK for m in metas):
+        try:
+            commit(staged)
+        except OSError as err:
+            failures.append(_commit_failure(err))
+    else:
+        discard(staged, token, _destinations(plan, writers))
+        held_back = writers
+        for node in held_back:
+            out.pop(node, None)  # its Files name paths this run did not write
+        failed = list(dict.fromkeys(m["node"] for m in metas if m["status"] == "failed"))
+        cause = (f"node{'s' if len(failed) > 1 else ''} {', '.join(repr(n) for n in failed)} failed" if failed
+                 else "tasks were skipped")
+    result = RunResult(out, metas, plan, time.perf_counter() - started, failures, held_back, cause)
     _record(plan, metas, store)
     reporter.close(result)
     return result
+
+
+def _writing(plan: Plan, names: Sequence[str]) -> list[str]:
+    """Writer nodes of `names` that would write files in this run (not intact cache hits)."""
+    return list(dict.fromkeys(plan.tasks[n].node for n in names
+                              if plan.tasks[n].writes and (not plan.tasks[n].hit or plan.tasks[n].restore)))
+
+
+def _destinations(plan: Plan, nodes: Iterable[str]) -> list[str]:
+    """The output path values of `nodes` (where their staging folders may be)."""
+    paths = []
+    for nid in nodes:
+        node = plan.nodes[nid]
+        for name in node.Params.model_fields:
+            value = getattr(node.params, name)
+            if _field_flag(node.Params, name, "output_file", False) and isinstance(value, str) and value:
+                paths.append(value)
+    return paths
+
+
+def _commit_failure(err: OSError) -> dict[str, Any]:
+    message = f"could not move the run's staged outputs onto their paths: {err}"
+    return {"node": "", "type": "nodegraph", "frames": None, "message": message, "reason": message, "port": "",
+            "bad_input": False, "traceback": "", "exception": type(err).__name__, "input_keys": {},
+            "time": time.time()}
 
 
 class _warnings_as_events:

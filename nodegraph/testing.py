@@ -6,7 +6,9 @@ multiplies (framewise), `test.MovingAverage` averages over a window (windowed), 
 sums over the whole sequence (sequence), `test.Fail` raises on chosen frames, and
 `test.Sum` adds two sequences, `test.Weighted` weights a list port by position, `test.Noise`
 draws from the task's seed, `test.WriteText` / `test.ReadText` write and read numbered text
-files. Import this module to register them.
+files, `test.ReadLines` reads one text file, `test.WriteSummary` writes a folder and
+`test.JoinFiles` reads the files of upstream writers and writes them joined into one. Import
+this module to register them.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from .node import FRAMEWISE, SEQUENCE, In, Node, NodeParams, Out, Param, windowe
 from .types import Files, JsonValue, ParamSequence
 
 __all__ = ["Ramp", "Scale", "MovingAverage", "CumSum", "Fail", "Sum", "Total", "Offset", "Weighted", "Noise",
-           "WriteText", "ReadText"]
+           "WriteText", "ReadText", "ReadLines", "WriteSummary", "JoinFiles"]
 
 
 def _column(values: np.ndarray) -> ParamSequence:
@@ -241,6 +243,8 @@ class WriteText(Node):
 
     class Params(NodeParams):
         path: str = Param(..., output_file=True, description="File, or pattern with {frame} for one per frame.")
+        fail_frames: list[int] = Param([], description="Raise after writing a chunk holding one of these "
+                                       "absolute frames (to test partial writes).")
 
     values = In(ParamSequence)
     files = Out(Files)
@@ -256,6 +260,9 @@ class WriteText(Node):
         else:
             paths = [self.params.path.format(start=self.frames.start)]
             write_text_atomic(paths[0], "".join(f"{v!r}\n" for v in rows))
+        hit = [f for f in self.params.fail_frames if f in self.frames]
+        if hit:
+            raise RuntimeError(f"deliberate failure after writing frame {hit[0]}")
         return {"files": Files(paths, [file_sha256(p, memo=False) for p in paths])}
 
 
@@ -281,3 +288,71 @@ class ReadText(Node):
     def run(self) -> dict:
         rows = [float(Path(self.params.path.format(frame=f)).read_text()) for f in self.frames]
         return {"values": _column(np.asarray(rows))}
+
+
+class ReadLines(Node):
+    """A framewise source reading one number per line of one text file."""
+
+    type_name = "test.ReadLines"
+    kind = FRAMEWISE
+
+    class Params(NodeParams):
+        path: str = Param(..., input_file=True, description="Text file, one number per line.")
+
+    values = Out(ParamSequence)
+
+    def frame_count(self) -> int:
+        return len(Path(self.params.path).read_text().split())
+
+    def run(self) -> dict:
+        rows = [float(v) for v in Path(self.params.path).read_text().split()]
+        return {"values": _column(np.asarray(rows[self.frames.start:self.frames.stop]))}
+
+
+class WriteSummary(Node):
+    """Write `summary.txt` (count and sum of the values) into a folder (a writer; '' = write nothing)."""
+
+    type_name = "test.WriteSummary"
+    kind = SEQUENCE
+    writes_files = True
+
+    class Params(NodeParams):
+        folder: str = Param(..., output_file=True, description="Output folder (created); '' = write nothing.")
+
+    values = In(ParamSequence)
+    files = Out(Files)
+
+    def run(self, values: ParamSequence) -> dict:
+        from .files import files_value, write_text_atomic
+
+        if not self.params.folder:
+            return {"files": Files([], [])}
+        path = Path(self.params.folder) / "summary.txt"
+        write_text_atomic(path, f"{len(values.values)} {float(values.values.sum())!r}\n")
+        return {"files": files_value([path])}
+
+
+class JoinFiles(Node):
+    """Read the files of upstream writers and write them joined into one file (a writer that
+    reads what other writers wrote in the same run)."""
+
+    type_name = "test.JoinFiles"
+    kind = SEQUENCE
+    writes_files = True
+    cacheable = False
+
+    class Params(NodeParams):
+        path: str = Param(..., output_file=True, description="Destination file.")
+        fail: bool = Param(False, description="Raise after writing (to test that published files are undone).")
+
+    parts = In(Files, many=True)
+    files = Out(Files)
+
+    def run(self, parts: list[Files]) -> dict:
+        from .files import files_value, write_text_atomic
+
+        text = "".join(Path(path).read_text() for files in parts for path in files.paths)
+        write_text_atomic(self.params.path, text)
+        if self.params.fail:
+            raise RuntimeError("deliberate failure after joining")
+        return {"files": files_value([self.params.path])}
