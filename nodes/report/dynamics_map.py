@@ -129,7 +129,6 @@ class DynamicsMap(Node):
         front = stabilize_vertices(capture.vertices[frame:frame + 1], skull.matrices[frame:frame + 1])[0]
         panels = {label: render_scalar_front(front, capture.faces, values, vmax=vmax_cm, size=p.size)
                   for label, values in shown.items()}
-        path = Path(p.folder) / "dynamics.png"
-        path.parent.mkdir(parents=True, exist_ok=True)
+        path = Path(p.folder) / "dynamics.png"  # its folder is made by the (staged) atomic write
         plot_dynamics_map(panels, vmax_cm, path, title="secondary dynamics, |offset| per vertex")
         return {"files": files_value([str(path)])}
