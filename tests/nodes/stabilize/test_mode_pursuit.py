@@ -273,7 +273,7 @@ def test_node_errors_name_port_or_param():
         run_node(ModePursuit, {"group": "lips"}, mesh=mesh)
     with pytest.raises(NodeError, match=r"'mesh': expected at least 7 frames .* found 5"):
         run_node(ModePursuit, {"schedule": "fixed"}, mesh=_small_mesh(frames=5))
-    with pytest.raises(NodeError, match=r"'group': expected at least 3 vertices in group 'tiny', found 2"):
+    with pytest.raises(NodeError, match=r"'group': group 'tiny': expected at least 10 distinct vertices .*found 2"):
         run_node(ModePursuit, {"group": "tiny"}, mesh=_small_mesh(groups={"tiny": np.array([1, 2])}))
     rest = MeshSequence(vertices=np.zeros((2, 30, 3), np.float32))
     with pytest.raises(NodeError, match=r"'rest': expected a one-frame mesh, found 2 frames"):
