@@ -1,6 +1,6 @@
 """graphs/demo.json end to end on a reduced frame range (the README's first command runs it on 100
 frames): stabilization beats the baselines, the bundled network removes dynamics, the fit of the
-renders tracks the true head motion and hybrid smoothing steadies it, the HTML page (with the run's
+renders tracks the true head motion and adaptive smoothing steadies it, the HTML page (with the run's
 per-node tasks, cache hits and seconds) loads in headless Chromium with every image decoded, and a
 second run is served from the cache."""
 
@@ -48,11 +48,11 @@ def test_demo_graph_end_to_end_and_from_the_cache(tmp_path):
     after = np.sqrt(((result.outputs["remove"]["quasistatic"].vertices[inner] - truth) ** 2).sum(-1).mean())
     assert after < 0.8 * before, (before, after)
 
-    # the fit of the renders: tracks the truth's rotation, hybrid smoothing steadies it
+    # the fit of the renders: tracks the truth's rotation, adaptive smoothing steadies it
     motion = _rows(result.outputs["motion"]["table"])
-    assert set(motion) == {"raw", "averaged", "hybrid"}
-    assert motion["hybrid"]["rough_rot_deg2"] < 0.5 * motion["raw"]["rough_rot_deg2"]
-    assert motion["hybrid"]["rot_err_deg"] < 5.0
+    assert set(motion) == {"raw", "averaged", "smoothed"}
+    assert motion["smoothed"]["rough_rot_deg2"] < 0.5 * motion["raw"]["rough_rot_deg2"]
+    assert motion["smoothed"]["rot_err_deg"] < 5.0
     assert result.outputs["flags"]["flags"].values[:, 0].sum() <= 2  # the renders are faces
     overlays = sorted(Path(p).name for p in result.outputs["overlays"]["files"].paths)
     assert overlays == ["fit.0000.png", "fit.0025.png"]
@@ -60,7 +60,7 @@ def test_demo_graph_end_to_end_and_from_the_cache(tmp_path):
     page = Path(params["html"])
     assert result.outputs["html"]["files"].paths == [str(page)]
     text = page.read_text()
-    for name in ("histograms.png", "dynamics.png", "fit.0025.png", "motion.png", "mode_pursuit", "hybrid",
+    for name in ("histograms.png", "dynamics.png", "fit.0025.png", "motion.png", "mode_pursuit", "smoothed",
                  "this run: per-node tasks, cache hits and seconds", "<td>performance</td>"):
         assert name in text, name
     from tests.nodes.report.test_html import CHROMIUM, check_in_browser
