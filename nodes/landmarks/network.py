@@ -13,14 +13,18 @@ A box is `(x0, y0, x1, y1)` in those coordinates, the crop covering `[x0, x1] x 
 - `crop_and_resize`: bilinear, differentiable in the pixels with the box held constant (the
   paper's dD/dF = 0); for a shrink by k >= 2 the image is first averaged over k x k blocks
   (no aliasing of fine detail).
-- `detect_faces`: the image letterboxed to a square (black bars) and resized to 128 x 128,
-  BlazeFace's 896 SSD anchors decoded to boxes and 6 keypoints, weighted non-maximum
-  suppression (IoU 0.3), the best face's box scaled 1.5 about its centre to a square: the
-  crop box of the face mesh (as MediaPipe's face-landmark front end, without its roll
-  rotation: faces should be upright within about 20 degrees).
+- `detect_all_faces`: every face: the image letterboxed to a square (black bars) and resized
+  to 128 x 128, BlazeFace's 896 SSD anchors decoded to boxes and 6 keypoints; for faces
+  smaller than that pass sees (`min_face_px`), an image pyramid of finer levels run fully
+  convolutionally (`grid_anchors`, `pyramid_scales`); one weighted non-maximum suppression
+  (IoU 0.3) over all levels. `detect_faces`: the face `face` chooses
+  (`nodes.landmarks.tracking`), its box scaled 1.5 about its centre to a square (the crop box
+  of the face mesh, as MediaPipe's face-landmark front end) and its roll (`eye_roll`).
 - `MediaPipeFaceMesh`: crops (B, 192, 192, 3) -> 468 points (x, y in crop pixels, 0 at the
   crop corner; z dropped) and face presence (sigmoid of the presence logit).
-- `face_landmarks`: crop, run a landmark network, map the points back to image pixels.
+- `face_landmarks`: crop (turned by a roll angle when given), run a landmark network, map the
+  points back to image pixels; `upright_face_landmarks` re-turns the crop by the points' own
+  eye line (`points_roll`) a few times, so a face rolled 90 degrees is read upright.
 
 This module imports torch at the top: import it from node `run()` methods only.
 """
@@ -37,13 +41,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .correspondence import MEDIAPIPE_TO_68
 from .heatmap import LandmarkNetwork
 from .tflite_torch import TfliteModule, read_tflite
+from .tracking import FaceChoice, choose_face
 
 __all__ = ["FACE_LANDMARK_MODEL", "FACE_DETECTOR_MODEL", "mediapipe_path", "srgb_encode",
            "crop_and_resize", "letterbox_box", "square_box", "ssd_anchors", "decode_detections",
-           "weighted_nms", "FaceDetections", "BlazeFace", "MediaPipeFaceMesh", "detect_faces",
-           "face_landmarks", "load_face_detector", "load_face_mesh"]
+           "weighted_nms", "Faces", "FaceDetections", "BlazeFace", "MediaPipeFaceMesh", "grid_anchors",
+           "pyramid_scales", "detect_all_faces", "eye_roll", "detect_faces", "select_faces", "face_landmarks",
+           "load_face_detector", "load_face_mesh", "DETECT_MIN_PX", "DEFAULT_MIN_FACE_PX", "points_roll",
+           "upright_face_landmarks"]
 
 FACE_LANDMARK_MODEL = "face_landmark.tflite"
 FACE_DETECTOR_MODEL = "face_detection_short_range.tflite"
@@ -82,13 +90,18 @@ def square_box(boxes: np.ndarray, scale: float = BOX_SCALE) -> np.ndarray:
     return np.concatenate([centre - side[..., None] / 2, centre + side[..., None] / 2], -1)
 
 
-def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int) -> Tensor:
+def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int,
+                    angles: Tensor | np.ndarray | None = None) -> Tensor:
     """Crop each image to its box and resize to size x size, bilinearly (differentiable in pixels).
 
     Args:
         images: (B, H, W, C) float.
         boxes: (B, 4) x0 y0 x1 y1, pixels (see the module docstring); held constant.
         size: output side S, pixels.
+        angles: (B,) radians or None (0): the crop is the box turned by this angle about its
+            centre (x towards y, i.e. clockwise on screen): crop pixel offset d from the crop
+            centre samples the image at `centre + R(angle) d`, so a face rolled by `angle`
+            comes out upright.
     Returns:
         (B, S, S, C); samples outside the image are 0 (black).
     """
@@ -98,6 +111,10 @@ def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int) -> Te
                             dtype=images.dtype, device=images.device).reshape(-1, 4)
     if len(boxes) != len(images):
         raise ValueError(f"boxes: expected shape ({len(images)}, 4), found {tuple(boxes.shape)}")
+    if angles is not None:
+        angles = np.asarray(angles.detach().cpu() if isinstance(angles, Tensor) else angles, np.float64).reshape(-1)
+        if len(angles) != len(images):
+            raise ValueError(f"angles: expected shape ({len(images)},), found {angles.shape}")
     out = []
     x = images.permute(0, 3, 1, 2)
     t = (torch.arange(size, device=images.device, dtype=images.dtype) + 0.5) / size
@@ -110,11 +127,14 @@ def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int) -> Te
             img = F.avg_pool2d(F.pad(img, (0, (-img.shape[3]) % k, 0, (-img.shape[2]) % k)), k)
             offset, step = (k - 1) / 2.0, float(k)
         h, w = img.shape[2], img.shape[3]
-        xs = (x0 + t * (x1 - x0) - offset) / step  # in pooled pixel-centre coordinates
-        ys = (y0 + t * (y1 - y0) - offset) / step
-        gx = (xs + 0.5) / w * 2 - 1
-        gy = (ys + 0.5) / h * 2 - 1
-        grid = torch.stack(torch.broadcast_tensors(gx[None, :], gy[:, None]), -1)[None]
+        if angles is None or angles[b] == 0.0:
+            xs, ys = torch.broadcast_tensors((x0 + t * (x1 - x0))[None, :], (y0 + t * (y1 - y0))[:, None])
+        else:  # offsets from the box centre, turned by the angle
+            dx, dy = torch.broadcast_tensors(((t - 0.5) * (x1 - x0))[None, :], ((t - 0.5) * (y1 - y0))[:, None])
+            c, s = float(np.cos(angles[b])), float(np.sin(angles[b]))
+            xs, ys = (x0 + x1) / 2 + c * dx - s * dy, (y0 + y1) / 2 + s * dx + c * dy
+        xs, ys = (xs - offset) / step, (ys - offset) / step  # in pooled pixel-centre coordinates
+        grid = torch.stack([(xs + 0.5) / w * 2 - 1, (ys + 0.5) / h * 2 - 1], -1)[None]
         out.append(F.grid_sample(img, grid, mode="bilinear", padding_mode="zeros", align_corners=False))
     return torch.cat(out).permute(0, 2, 3, 1)
 
@@ -245,21 +265,198 @@ def load_face_mesh(device: str = "cpu", dtype: torch.dtype = torch.float32) -> M
     return _cached("mesh").to(device=device, dtype=dtype)
 
 
+class Faces(NamedTuple):
+    """All faces found in one image, by decreasing score: `boxes` (N, 4) the detector's face
+    boxes x0 y0 x1 y1, `keypoints` (N, 6, 2) x y (see `decode_detections`), both in image
+    pixels; `scores` (N,) in [0, 1]."""
+
+    boxes: np.ndarray
+    keypoints: np.ndarray
+    scores: np.ndarray
+
+
 class FaceDetections(NamedTuple):
-    """Per image, the best face: `boxes` (B, 4) square crop boxes for the face mesh (x0 y0 x1
-    y1 pixels; NaN where none), `face_boxes` (B, 4) the detector's own box, `keypoints`
-    (B, 6, 2) pixels, `scores` (B,) in [0, 1] (0 where none), `found` (B,) bool."""
+    """Per image, the chosen face: `boxes` (B, 4) square crop boxes for the face mesh (x0 y0
+    x1 y1 pixels; NaN where none), `face_boxes` (B, 4) the detector's own box, `keypoints`
+    (B, 6, 2) pixels, `scores` (B,) in [0, 1] (0 where none), `found` (B,) bool, `rolls` (B,)
+    the eye line's angle, radians (`eye_roll`; NaN where none)."""
 
     boxes: np.ndarray
     face_boxes: np.ndarray
     keypoints: np.ndarray
     scores: np.ndarray
     found: np.ndarray
+    rolls: np.ndarray
+
+
+def grid_anchors(height: int, width: int) -> np.ndarray:
+    """Anchor centres of BlazeFace short range run on an H x W input (multiples of 16), pixels.
+
+    The network is fully convolutional up to its outputs, so on a larger input it gives one
+    prediction per anchor of the larger grids, in the order of `ssd_anchors` (2 anchors per
+    cell of the stride-8 grid, then 6 per cell of the stride-16 grid, row-major); on 128 x 128
+    this is `ssd_anchors() * 128`. Returns (N, 2) x, y.
+    """
+    out = []
+    for stride, per_cell in ((8, 2), (16, 6)):
+        yy, xx = np.meshgrid((np.arange(height // stride) + 0.5) * stride,
+                             (np.arange(width // stride) + 0.5) * stride, indexing="ij")
+        out.append(np.repeat(np.stack([xx.ravel(), yy.ravel()], -1), per_cell, axis=0))
+    return np.concatenate(out)
+
+
+DETECT_MIN_PX = 20.0
+"""Smallest face box side, in detector-input pixels, that BlazeFace short range finds reliably
+(the astronaut's face shrunk: score 0.89-0.92 at 20 px, 0.66-0.79 at 16, 0.22-0.49 at 12)."""
+LEVEL_MAX_PX = 96.0
+"""Largest face box side, in detector-input pixels, kept from a finer pyramid level (larger
+faces are found by the coarser levels; larger boxes there are parts of a face)."""
+DEFAULT_MIN_FACE_PX = 40.0
+"""Default smallest face looked for: a face box of 40 px, an eye distance of about 19 px (the
+box side is about 2.1 eye distances)."""
+PYRAMID_MIN_SCORE = 0.7
+"""Least score of a detection from a finer pyramid level: the finer levels see many more
+windows of background, and their false detections (the astronaut's suit, a star field) scored
+0.50-0.66 where faces of 20-30 detector pixels scored 0.83-0.97."""
+_LEVEL_PIXELS = 4_000_000
+"""Detector-input pixels per network call on the finer levels (bounds the memory of a call)."""
+
+
+def pyramid_scales(height: int, width: int, min_face_px: float) -> list[float]:
+    """Scales (detector pixels per image pixel) of the finer pyramid levels after the whole frame.
+
+    The whole frame (letterboxed to 128) finds faces of side >= `DETECT_MIN_PX` / (128 / long
+    side); each finer level doubles the scale until a face of `min_face_px` is `DETECT_MIN_PX`
+    detector pixels wide (the last step smaller), so no level is added when the frame is at most
+    `128 * min_face_px / DETECT_MIN_PX` pixels on its long side (256 for the default 40 px).
+
+    Example:
+        >>> [round(s, 3) for s in pyramid_scales(1080, 1920, 40.0)]
+        [0.133, 0.267, 0.5]
+    """
+    if min_face_px <= 0:
+        return []
+    scale = DETECTOR_SIZE / float(max(height, width))
+    target = min(DETECT_MIN_PX / min_face_px, 2.0)
+    out = []
+    while scale < target * (1 - 1e-9):
+        scale = min(2 * scale, target)
+        out.append(scale)
+    return out
+
+
+def _suppress_contained(faces: list[tuple[np.ndarray, np.ndarray, float]],
+                        fraction: float = 0.5) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Drop faces whose box lies more than `fraction` inside the box of a face that is larger
+    and scores higher (parts of a face found on a fine level); a small confident face inside
+    a large doubtful box is kept and the large box dropped."""
+    def inside(i: int, j: int) -> float:  # fraction of box i inside box j
+        a, b = faces[i][0], faces[j][0]
+        inter = np.prod(np.clip(np.minimum(a[2:], b[2:]) - np.maximum(a[:2], b[:2]), 0, None))
+        return float(inter / max(np.prod(a[2:] - a[:2]), 1e-12))
+
+    area = [float(np.prod(f[0][2:] - f[0][:2])) for f in faces]
+    drop = set()
+    for i in range(len(faces)):
+        for j in range(len(faces)):
+            if i != j and area[j] > area[i] and inside(i, j) > fraction:
+                drop.add(i if faces[j][2] >= faces[i][2] else j)
+    return [f for i, f in enumerate(faces) if i not in drop]
+
+
+def detect_all_faces(images: Tensor, detector: nn.Module | None = None, *, min_score: float = 0.5,
+                     iou: float = 0.3, min_face_px: float = 0.0,
+                     pyramid_min_score: float = PYRAMID_MIN_SCORE) -> list[Faces]:
+    """Find every face in each image: the whole frame, then an image pyramid (no gradients).
+
+    Level 0 is the whole frame letterboxed to 128 x 128 (MediaPipe's front end). When faces
+    smaller than level 0 can see are wanted (`min_face_px`), finer levels follow
+    (`pyramid_scales`): the frame resized (area-averaged) to each scale and run fully
+    convolutionally, which is the detector over overlapping 128 x 128 tiles at a stride of
+    16 pixels without recomputing their overlaps (a face is never cut by a tile edge). The
+    candidates of all levels, in image pixels, go through one weighted NMS; then a face lying
+    mostly inside a larger one is dropped.
+
+    Args:
+        images: (B, H, W, 3) RGB in [0, 1], sRGB-encoded.
+        detector: a `BlazeFace` (default: the bundled one, on the images' device).
+        min_score: detections below this score are dropped (MediaPipe: 0.5).
+        iou: weighted-NMS overlap threshold (MediaPipe: 0.3).
+        min_face_px: smallest face box side to look for, image pixels; 0 = level 0 only.
+        pyramid_min_score: least score on the finer levels (at least `min_score`).
+    Returns:
+        one `Faces` per image.
+    """
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images: expected shape (B, H, W, 3), found {tuple(images.shape)}")
+    bsz, height, width = images.shape[:3]
+    detector = detector or load_face_detector(str(images.device), images.dtype)
+    letter = letterbox_box(height, width)
+    side = letter[2] - letter[0]
+    cand: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in range(bsz)]
+    with torch.no_grad():
+        inputs = crop_and_resize(images, np.repeat(letter[None], bsz, 0), DETECTOR_SIZE)
+        boxes_n, kps_n, scores = (t.double().cpu().numpy() for t in decode_detections(*detector(inputs)))
+        for b in range(bsz):
+            keep = scores[b] >= min_score
+            cand[b].append((letter[[0, 1, 0, 1]] + boxes_n[b, keep] * side, letter[:2] + kps_n[b, keep] * side,
+                            scores[b, keep]))
+        nchw = images.permute(0, 3, 1, 2)
+        for scale in pyramid_scales(height, width, min_face_px):
+            h, w = max(int(round(height * scale)), 1), max(int(round(width * scale)), 1)
+            sy, sx = h / height, w / width
+            hp, wp = -(-h // 16) * 16, -(-w // 16) * 16
+            anchors = torch.as_tensor(grid_anchors(hp, wp), dtype=images.dtype, device=images.device)
+            step = max(1, _LEVEL_PIXELS // (hp * wp))
+            for start in range(0, bsz, step):
+                level = F.interpolate(nchw[start:start + step], size=(h, w), mode="bilinear",
+                                      antialias=scale < 1, align_corners=False)
+                level = F.pad(level, (0, wp - w, 0, hp - h)).permute(0, 2, 3, 1)
+                regressors, logits = detector(level)
+                score = torch.sigmoid(logits[..., 0].clamp(-100.0, 100.0))
+                for i in range(len(level)):
+                    keep = ((score[i] >= max(min_score, pyramid_min_score)) &
+                            (regressors[i, :, 2:4].amax(-1) <= LEVEL_MAX_PX))
+                    r = regressors[i, keep].double().cpu().numpy()
+                    a = anchors[keep].double().cpu().numpy()
+                    centre, half = r[:, 0:2] + a, r[:, 2:4] / 2
+                    box = np.concatenate([centre - half, centre + half], -1)
+                    kps = r[:, 4:16].reshape(-1, 6, 2) + a[:, None, :]
+                    to_image = np.array([sx, sy])
+                    cand[start + i].append((((box.reshape(-1, 2, 2) + 0.5) / to_image - 0.5).reshape(-1, 4),
+                                            (kps + 0.5) / to_image - 0.5, score[i, keep].double().cpu().numpy()))
+    out = []
+    for parts in cand:
+        boxes_px = np.concatenate([p[0] for p in parts]).reshape(-1, 4)
+        kps_px = np.concatenate([p[1] for p in parts]).reshape(-1, 6, 2)
+        found = _suppress_contained(weighted_nms(boxes_px, kps_px, np.concatenate([p[2] for p in parts]),
+                                                 min_score=min_score, iou=iou))
+        out.append(Faces(np.array([f[0] for f in found]).reshape(-1, 4),
+                         np.array([f[1] for f in found]).reshape(-1, 6, 2), np.array([f[2] for f in found])))
+    return out
+
+
+def eye_roll(keypoints: np.ndarray) -> np.ndarray:
+    """The eye line's angle from the detector's keypoints (MediaPipe's crop rotation).
+
+    Args:
+        keypoints: (..., 6, 2) pixels; 0 the subject's right eye (image left when upright), 1 the left.
+    Returns:
+        (...) radians, atan2 of the right-to-left eye vector in image axes (y down): 0 for an
+        upright face, positive when the face is turned clockwise on screen.
+    """
+    kps = np.asarray(keypoints, np.float64)
+    d = kps[..., 1, :] - kps[..., 0, :]
+    return np.arctan2(d[..., 1], d[..., 0])
 
 
 def detect_faces(images: Tensor, detector: nn.Module | None = None, *, min_score: float = 0.5,
-                 iou: float = 0.3, scale: float = BOX_SCALE) -> FaceDetections:
-    """Detect the best face in each image and return its square crop box (no gradients).
+                 iou: float = 0.3, scale: float = BOX_SCALE, min_face_px: float = 0.0,
+                 face: FaceChoice = "largest") -> FaceDetections:
+    """Detect the chosen face in each image and return its square crop box (no gradients).
+
+    Each image is treated alone (`nodes.landmarks.tracking.follow_faces` follows a face in a
+    video).
 
     Args:
         images: (B, H, W, 3) RGB in [0, 1], sRGB-encoded.
@@ -267,49 +464,104 @@ def detect_faces(images: Tensor, detector: nn.Module | None = None, *, min_score
         min_score: detections below this score are dropped (MediaPipe: 0.5).
         iou: weighted-NMS overlap threshold (MediaPipe: 0.3).
         scale: crop side over the longer side of the face box.
+        min_face_px: smallest face to look for (`detect_all_faces`); 0 = the whole frame only.
+        face: which face (`nodes.landmarks.tracking.choose_face`).
     Returns:
         FaceDetections in image pixels.
     """
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"images: expected shape (B, H, W, 3), found {tuple(images.shape)}")
-    bsz, height, width = images.shape[:3]
-    detector = detector or load_face_detector(str(images.device), images.dtype)
-    letter = letterbox_box(height, width)
-    with torch.no_grad():
-        inputs = crop_and_resize(images, np.repeat(letter[None], bsz, 0), DETECTOR_SIZE)
-        boxes_n, kps_n, scores = decode_detections(*detector(inputs))
-    side = letter[2] - letter[0]
-    boxes_n, kps_n, scores = (t.double().cpu().numpy() for t in (boxes_n, kps_n, scores))
-    out = FaceDetections(np.full((bsz, 4), np.nan), np.full((bsz, 4), np.nan),
-                         np.full((bsz, 6, 2), np.nan), np.zeros(bsz), np.zeros(bsz, bool))
-    for b in range(bsz):
-        faces = weighted_nms(boxes_n[b], kps_n[b], scores[b], min_score=min_score, iou=iou)
-        if not faces:
+    found = detect_all_faces(images, detector, min_score=min_score, iou=iou, min_face_px=min_face_px)
+    height, width = images.shape[1:3]
+    chosen = [choose_face(f.boxes, f.scores, face, (height, width)) for f in found]
+    return select_faces(found, np.array(chosen, np.int64), scale)
+
+
+def select_faces(faces: list[Faces], chosen: np.ndarray, scale: float = BOX_SCALE) -> FaceDetections:
+    """FaceDetections of `faces[b]`'s detection `chosen[b]` (-1: none), crop boxes scaled by `scale`."""
+    bsz = len(faces)
+    out = FaceDetections(np.full((bsz, 4), np.nan), np.full((bsz, 4), np.nan), np.full((bsz, 6, 2), np.nan),
+                         np.zeros(bsz), np.zeros(bsz, bool), np.full(bsz, np.nan))
+    for b, (f, i) in enumerate(zip(faces, chosen)):
+        if i < 0:
             continue
-        box, kps, score = faces[0]
-        box_px = letter[[0, 1, 0, 1]] + box * side
-        out.face_boxes[b] = box_px
-        out.keypoints[b] = letter[:2] + kps * side
-        out.boxes[b] = square_box(box_px, scale)
-        out.scores[b] = score
+        out.face_boxes[b] = f.boxes[i]
+        out.keypoints[b] = f.keypoints[i]
+        out.boxes[b] = square_box(f.boxes[i], scale)
+        out.scores[b] = f.scores[i]
         out.found[b] = True
+        out.rolls[b] = eye_roll(f.keypoints[i])
     return out
 
 
-def face_landmarks(images: Tensor, boxes: Tensor | np.ndarray, network: LandmarkNetwork) -> tuple[Tensor, Tensor]:
+def face_landmarks(images: Tensor, boxes: Tensor | np.ndarray, network: LandmarkNetwork,
+                   angles: Tensor | np.ndarray | None = None) -> tuple[Tensor, Tensor]:
     """Run a landmark network on the boxes' crops and map the points to image pixels.
 
     Args:
         images: (B, H, W, 3) RGB in [0, 1], sRGB-encoded (gradients flow to them).
         boxes: (B, 4) x0 y0 x1 y1 crop boxes, pixels (held constant).
         network: a `LandmarkNetwork` (e.g. `MediaPipeFaceMesh`, `HeatmapLandmarks`).
+        angles: (B,) radians or None: each crop turned by its angle about the box centre
+            (`crop_and_resize`; e.g. `eye_roll` of the detector's keypoints), so that the
+            network sees the face upright; the points are turned back.
     Returns:
         points (B, L, 2) image pixels (centres at integers), presence (B,).
     """
     size = int(network.input_size)
-    crops = crop_and_resize(images, boxes, size)
+    crops = crop_and_resize(images, boxes, size, angles)
     points, presence = network(crops)
     box = torch.as_tensor(np.asarray(boxes, np.float64) if not isinstance(boxes, Tensor) else boxes,
                           dtype=points.dtype, device=points.device).reshape(-1, 1, 4)
     scale = (box[..., 2:] - box[..., :2]) / size
-    return box[..., :2] + points * scale, presence
+    if angles is None:
+        return box[..., :2] + points * scale, presence
+    theta = torch.as_tensor(np.asarray(angles.detach().cpu() if isinstance(angles, Tensor) else angles, np.float64),
+                            dtype=points.dtype, device=points.device).reshape(-1, 1)
+    c, s = torch.cos(theta), torch.sin(theta)
+    d = (points - size / 2) * scale  # offsets from the crop centre, image pixels, crop axes
+    centre = (box[..., :2] + box[..., 2:]) / 2
+    turned = torch.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], -1)
+    return centre + turned, presence
+
+
+def points_roll(points: np.ndarray) -> np.ndarray:
+    """The eye line's angle from landmarks (as `eye_roll`): the right eye's centre to the left's.
+
+    Args:
+        points: (..., 468, 2) face-mesh or (..., 68, 2) Multi-PIE points, pixels.
+    Returns:
+        (...) radians (NaN where the points are NaN).
+    """
+    p = np.asarray(points, np.float64)
+    if p.shape[-2] == 468:
+        p = p[..., MEDIAPIPE_TO_68, :]
+    if p.shape[-2] != 68:
+        raise ValueError(f"points: expected shape (..., 468, 2) or (..., 68, 2), found {p.shape}")
+    d = p[..., 42:48, :].mean(-2) - p[..., 36:42, :].mean(-2)
+    return np.arctan2(d[..., 1], d[..., 0])
+
+
+def upright_face_landmarks(images: Tensor, boxes: np.ndarray, network: LandmarkNetwork,
+                           angles: np.ndarray | None = None, passes: int = 2) -> tuple[Tensor, Tensor, np.ndarray]:
+    """`face_landmarks` with the crop turned upright, then re-turned by the points' own eye line.
+
+    The detector's eye keypoints give the roll only roughly (a face rolled 90 degrees reads as
+    about 40), so after the first pass the crop is turned by the eye line of the points found
+    (`points_roll`) and read again, `passes` times: each pass leaves a smaller roll in the crop,
+    which the network reads better.
+
+    Args:
+        images: (B, H, W, 3) RGB in [0, 1], sRGB-encoded.
+        boxes: (B, 4) crop boxes, pixels (the crop turns about their centres; side kept).
+        network: a `LandmarkNetwork` of 468 or 68 points.
+        angles: (B,) first roll, radians (e.g. `eye_roll`); None or NaN = 0 (upright).
+        passes: extra passes after the first (0: the first crop only).
+    Returns:
+        points (B, L, 2) image pixels, presence (B,), the roll of the last crop (B,) radians.
+    """
+    theta = np.zeros(len(images)) if angles is None else np.nan_to_num(np.asarray(angles, np.float64).reshape(-1))
+    points, presence = face_landmarks(images, boxes, network, theta)
+    for _ in range(passes):
+        roll = points_roll(points.detach().double().cpu().numpy())
+        theta = np.where(np.isfinite(roll), roll, theta)
+        points, presence = face_landmarks(images, boxes, network, theta)
+    return points, presence, theta

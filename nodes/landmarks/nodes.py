@@ -3,9 +3,11 @@ points), the NPZ saver and overlay images.
 
 - `landmarks.LoadFrames`: an image pattern or a video file (by extension) -> images.
 - `landmarks.DetectFaces`: images -> square crop boxes (x0 y0 x1 y1, pixels; NaN where no
-  face), detector scores, failure flags (BlazeFace, `nodes.landmarks.network`).
-- `landmarks.FaceLandmarks`: images + boxes -> 468 face-mesh points, the 68 Multi-PIE points
-  (`nodes.landmarks.correspondence`) and face presence. A heatmap network (3D-FAN style,
+  face), detector scores, failure flags and rolls (BlazeFace over an image pyramid,
+  `nodes.landmarks.network`; which face and following it, `nodes.landmarks.tracking`).
+- `landmarks.FaceLandmarks`: images + boxes (+ rolls) -> 468 face-mesh points, the 68
+  Multi-PIE points (`nodes.landmarks.correspondence`) and face presence, read in crops turned
+  upright. A heatmap network (3D-FAN style,
   a `TorchModel`) may replace the face mesh for the 68 points (`nodes.landmarks.heatmap`).
 - `landmarks.SaveLandmarks`: one NPZ with boxes [F, 4], landmarks68 [F, 68, 2],
   landmarks468 [F, 468, 2], presence [F], failed [F].
@@ -22,13 +24,17 @@ import os
 from pathlib import Path
 
 import numpy as np
-from pydantic import field_validator
+from typing import Annotated, Any, Literal
 
-from nodegraph import (FRAMEWISE, SEQUENCE, Files, ImageSequence, In, InputError, Landmarks2D, Node, NodeParams,
-                       Out, Param, ParamSequence, TorchModel)
+from pydantic import Field, field_validator, model_validator
+
+from nodegraph import (FRAMEWISE, SEQUENCE, Files, ImageSequence, In, Index, InputError, Landmarks2D, Node,
+                       NodeParams, Out, Param, ParamSequence, TorchModel)
+from nodegraph.node import _number_problem
 from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
 from .correspondence import MEDIAPIPE_TO_68
+from .tracking import FACE_CHOICES
 
 __all__ = ["VIDEO_EXTENSIONS", "LoadFrames", "DetectFaces", "FaceLandmarks", "SaveLandmarks",
            "LandmarkOverlays", "draw_overlay"]
@@ -100,52 +106,112 @@ class LoadFrames(Node):
         return {"images": load_image_sequence(p.path, self.frames, first_frame=p.first_frame, fps=p.fps)}
 
 
+def _face_problem(value: object) -> str:
+    """Why `value` is not a `face` choice ("" when it is one)."""
+    if isinstance(value, str):
+        return "" if value in FACE_CHOICES else (f"expected one of {list(FACE_CHOICES)}, an index >= 0 or a box "
+                                                 f"[x0, y0, x1, y1] in pixels, found the string {value!r}")
+    if isinstance(value, bool):
+        return f"expected a name, an index >= 0 or a box [x0, y0, x1, y1], found {value!r}"
+    if isinstance(value, int):
+        return "" if value >= 0 else f"expected an index >= 0 (0 = the leftmost face), found {value}"
+    if isinstance(value, (list, tuple)):
+        if len(value) != 4 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            return f"expected a box of 4 numbers [x0, y0, x1, y1] in pixels, found {list(value)!r}"
+        if not all(np.isfinite(value)) or not (value[2] > value[0] and value[3] > value[1]):
+            return f"expected a box [x0, y0, x1, y1] with x1 > x0 and y1 > y0, found {list(value)!r}"
+        return ""
+    return f"expected one of {list(FACE_CHOICES)}, an index >= 0 or a box [x0, y0, x1, y1], found {value!r}"
+
+
 class DetectFaces(Node):
-    """Detect the best face per frame (BlazeFace) and give the square crop box of the face mesh."""
+    """Detect faces over an image pyramid, choose one, follow it; give its face-mesh crop box.
+
+    Sequence node: following a person is a chain through all frames before (the choice is made
+    on the first frame where it finds a face, every later frame takes the detection overlapping
+    the previous frame's most), so a chunk cannot start it alone without possibly picking the
+    other person; a halo (`windowed`) would only make that rarer, so the node sees all frames.
+    """
 
     type_name = "landmarks.DetectFaces"
-    version = 1
-    kind = FRAMEWISE
+    version = 2
+    kind = SEQUENCE
     resources = {"gpu": 1}
 
     class Params(NodeParams):
+        face: Literal["largest", "centre", "score"] | Index | Annotated[list[float], Field(min_length=4, max_length=4)] = \
+            Param("largest", description="Which face: 'largest' (box area), 'centre' (nearest the image centre), "
+                  "'score' (most confident), an index in reading order (0 = leftmost box centre; ties top to "
+                  "bottom) or a box [x0, y0, x1, y1] in pixels (the detection overlapping it most). Applied on the "
+                  "first frame where it finds a face; later frames follow that person.")
+        track_iou: float = Param(0.3, gt=0, le=1, description="Least overlap (IoU) with the previous frame's face "
+                                 "that continues following it; below it the frame fails and the choice is made "
+                                 "again on the next frame.")
+        min_face_px: float = Param(40.0, ge=0, description="Smallest face looked for: its detector box side, "
+                                   "pixels (about 2.1 eye distances). Finer pyramid levels are added only when the "
+                                   "whole frame (squeezed to 128 x 128) would miss such a face: none for frames of "
+                                   "at most 256 px at 40; 0 = the whole frame only.")
+        pyramid_min_score: float = Param(0.7, ge=0, le=1, description="Least score of a detection from the finer "
+                                         "pyramid levels (they see many more background windows).")
         min_score: float = Param(0.5, ge=0, le=1, description="Detections below this score are dropped.")
         iou: float = Param(0.3, gt=0, le=1, description="Overlap (IoU) of the weighted non-maximum suppression.")
         box_scale: float = Param(1.5, gt=0, description="Crop side over the longer side of the face box.")
         batch: int = Param(8, ge=1, description="Frames per network call.", affects_output=False)
 
+        @model_validator(mode="before")
+        @classmethod
+        def _strict_numbers(cls, data: Any) -> Any:
+            # Replaces NodeParams' check of the same name, which reads the Literal names of `face`
+            # as "expected an integer"; the other fields get the same check as there.
+            if isinstance(data, dict):
+                for name, value in data.items():
+                    if name == "face":
+                        problem = _face_problem(value)
+                    elif name in cls.model_fields:
+                        info = cls.model_fields[name]
+                        problem = _number_problem(info.annotation, value, tuple(info.metadata))
+                    else:
+                        continue
+                    if problem:
+                        raise ValueError(f"'{name}': {problem}")
+            return data
+
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the network).")
     boxes = Out(ParamSequence, doc="x0 y0 x1 y1: square crop box, pixels (NaN where no face).")
     scores = Out(ParamSequence, doc="score: detector confidence in [0, 1] (0 where no face).")
-    failed = Out(ParamSequence, doc="failed: 1 where no face was found, else 0.")
+    failed = Out(ParamSequence, doc="failed: 1 where no face was found (or the followed face was lost), else 0.")
+    rolls = Out(ParamSequence, doc="roll: the eye line's angle from the detector's eye keypoints, radians, "
+                "clockwise on screen (0 upright; NaN where no face); for landmarks.FaceLandmarks.")
 
     def run(self, images: ImageSequence) -> dict[str, ParamSequence]:
         import torch
 
-        from .network import detect_faces, load_face_detector
+        from .network import detect_all_faces, load_face_detector, select_faces
+        from .tracking import follow_faces
 
         p = self.params
         pixels = _network_images(images)
         detector = load_face_detector(self.device)
-        boxes, scores, found = [], [], []
+        faces = []
         for start in range(0, len(pixels), p.batch):
             batch = torch.as_tensor(pixels[start:start + p.batch], device=self.device)
-            det = detect_faces(batch, detector, min_score=p.min_score, iou=p.iou, scale=p.box_scale)
-            boxes.append(det.boxes)
-            scores.append(det.scores)
-            found.append(det.found)
+            faces += detect_all_faces(batch, detector, min_score=p.min_score, iou=p.iou, min_face_px=p.min_face_px,
+                                      pyramid_min_score=p.pyramid_min_score)
             self.progress(min(start + p.batch, len(pixels)) / max(len(pixels), 1), "detecting faces")
-        found_all = np.concatenate(found)
-        return {"boxes": ParamSequence(np.concatenate(boxes).astype(np.float32), list(BOX_NAMES)),
-                "scores": ParamSequence(np.concatenate(scores).astype(np.float32)[:, None], ["score"]),
-                "failed": ParamSequence((~found_all).astype(np.float32)[:, None], ["failed"])}
+        chosen = follow_faces([f.boxes for f in faces], [f.scores for f in faces], p.face, pixels.shape[1:3],
+                              min_iou=p.track_iou)
+        det = select_faces(faces, chosen, p.box_scale)
+        return {"boxes": ParamSequence(det.boxes.astype(np.float32), list(BOX_NAMES)),
+                "scores": ParamSequence(det.scores.astype(np.float32)[:, None], ["score"]),
+                "failed": ParamSequence((~det.found).astype(np.float32)[:, None], ["failed"]),
+                "rolls": ParamSequence(det.rolls.astype(np.float32)[:, None], ["roll"])}
 
 
 class FaceLandmarks(Node):
     """Face landmarks in each frame's crop box: 468 face-mesh points, the 68 Multi-PIE points, presence."""
 
     type_name = "landmarks.FaceLandmarks"
-    version = 1
+    version = 2
     kind = FRAMEWISE
     resources = {"gpu": 1}
 
@@ -153,26 +219,34 @@ class FaceLandmarks(Node):
         heatmap_input_size: int = Param(256, ge=8, description="Crop side of a connected heatmap network "
                                         "(3D-FAN: 256).")
         beta: float = Param(50.0, gt=0, description="Soft-argmax inverse temperature of the heatmap head.")
+        roll_passes: int = Param(3, ge=0, description="Face-mesh passes after the first that turn the crop by "
+                                 "the eye line of the points found (the detector's roll reads a 90 deg roll as "
+                                 "about 40); 0 = the crop turned by `rolls` only (upright without them).")
         batch: int = Param(8, ge=1, description="Frames per network call.", affects_output=False)
 
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the network).")
     boxes = In(ParamSequence, doc="x0 y0 x1 y1 crop boxes, pixels (landmarks.DetectFaces).")
+    rolls = In(ParamSequence, optional=True, doc="roll: first turn of each crop about its centre, radians "
+               "(landmarks.DetectFaces); absent = upright, then `roll_passes`.")
     heatmap_model = In(TorchModel, optional=True, doc="A heatmap network (B, 3, S, S) -> (B, 68, h, w); "
                        "replaces the face mesh for landmarks68.")
     landmarks468 = Out(Landmarks2D, doc="(F, 468, 2) face-mesh points, pixels; confidence = presence.")
     landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence.")
     presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (0 where no box).")
 
-    def run(self, images: ImageSequence, boxes: ParamSequence,
+    def run(self, images: ImageSequence, boxes: ParamSequence, rolls: ParamSequence | None = None,
             heatmap_model: TorchModel | None = None) -> dict[str, object]:
         import torch
 
         from .heatmap import HeatmapLandmarks
-        from .network import face_landmarks, load_face_mesh
+        from .network import face_landmarks, load_face_mesh, upright_face_landmarks
 
         p = self.params
         if boxes.values.shape[1] != 4:
             raise InputError("boxes", f"expected 4 columns {BOX_NAMES}, found {boxes.names}")
+        if rolls is not None and rolls.values.shape[1] != 1:
+            raise InputError("rolls", f"expected 1 column ['roll'], found {rolls.names}")
+        first_roll = np.zeros(len(boxes.values)) if rolls is None else np.nan_to_num(rolls.values[:, 0].astype(np.float64))
         pixels = _network_images(images)
         frames = len(pixels)
         mesh = load_face_mesh(self.device)
@@ -190,11 +264,11 @@ class FaceLandmarks(Node):
                 sel = valid[start:start + p.batch]
                 batch = torch.as_tensor(pixels[sel], device=self.device)
                 box = boxes.values[sel].astype(np.float64)
-                points, pres = face_landmarks(batch, box, mesh)
+                points, pres, roll = upright_face_landmarks(batch, box, mesh, first_roll[sel], p.roll_passes)
                 pts468[sel] = points.cpu().numpy()
                 presence[sel] = pres.cpu().numpy()
-                if heatmap is not None:
-                    points68, pres68 = face_landmarks(batch, box, heatmap)
+                if heatmap is not None:  # in the face mesh's upright crop
+                    points68, pres68 = face_landmarks(batch, box, heatmap, roll)
                     if points68.shape[1] != 68:
                         raise InputError("heatmap_model", f"expected 68 heatmaps, found {points68.shape[1]}")
                     pts68[sel] = points68.cpu().numpy()

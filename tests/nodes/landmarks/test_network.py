@@ -215,3 +215,46 @@ def test_mediapipe_to_68_table_is_valid_and_symmetric():
 
 def test_load_face_detector_is_cached():
     assert load_face_detector() is load_face_detector()
+
+
+def test_grid_anchors_extend_the_128_anchors():
+    from nodes.landmarks.network import grid_anchors
+
+    np.testing.assert_allclose(grid_anchors(128, 128), ssd_anchors() * 128)
+    assert grid_anchors(256, 384).shape == (32 * 48 * 2 + 16 * 24 * 6, 2)
+
+
+def test_pyramid_scales_adapt_to_the_frame():
+    from nodes.landmarks.network import pyramid_scales
+
+    assert pyramid_scales(256, 256, 40.0) == [] and pyramid_scales(4000, 4000, 0.0) == []
+    scales = pyramid_scales(2160, 3840, 40.0)
+    assert scales[-1] == pytest.approx(0.5) and all(b <= 2 * a + 1e-12 for a, b in zip(scales, scales[1:]))
+
+
+def test_crop_and_resize_turned_by_90_degrees_is_rot90():
+    rng = np.random.default_rng(3)
+    img = torch.tensor(rng.uniform(0, 1, (1, 16, 16, 3)), dtype=torch.float64)
+    box = np.array([[-0.5, -0.5, 15.5, 15.5]])
+    out = crop_and_resize(img, box, 16, np.array([np.pi / 2]))
+    # crop pixel (u, v) samples centre + R(90) (u - c, v - c) = image (x = 15 - v, y = u)
+    v, u = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    np.testing.assert_allclose(out[0].numpy(), img[0].numpy()[u, 15 - v], atol=1e-9)
+
+
+def test_face_landmarks_turns_points_back_and_points_roll():
+    from nodes.landmarks.network import points_roll
+
+    class Corner(torch.nn.Module):  # one point at the crop's (x, y) = (12, 4) of 16
+        input_size = 16
+        num_points = 1
+
+        def forward(self, crops):
+            return torch.tensor([[[12.0, 4.0]]]).expand(len(crops), 1, 2), torch.ones(len(crops))
+
+    box = np.array([[10.0, 20.0, 26.0, 36.0]])  # centre (18, 28), 1 px per crop pixel
+    pts, _ = face_landmarks(torch.zeros(1, 40, 40, 3), box, Corner(), np.array([np.pi / 2]))
+    np.testing.assert_allclose(pts[0, 0].numpy(), [18 - (-4.0), 28 + 4.0], atol=1e-5)  # (4, -4) turned by 90 deg
+    p68 = np.zeros((68, 2))
+    p68[42:48] = [10.0, 10.0]  # left eye below-right of the right eye at the origin: 45 deg
+    assert np.rad2deg(points_roll(p68)) == pytest.approx(45.0)
