@@ -21,7 +21,7 @@ GRAPH = Path(__file__).resolve().parents[2] / "graphs" / "fit_video.json"
 
 def test_fit_video_graph_types_ports_params_exist():
     spec = check_graph_file(GRAPH)
-    assert set(spec["parameters"]) == {"images", "camera", "output", "report"}
+    assert set(spec["parameters"]) == {"images", "camera", "output", "report", "face"}
 
 
 def test_fit_video_graph_on_the_astronaut_and_a_face_free_frame(tmp_path):

@@ -32,7 +32,7 @@ def test_fit_video_temporal_graph_types_ports_params_exist():
     spec = check_graph_file(GRAPH)
     plain = json.loads((GRAPH.parent / "fit_video.json").read_text())
     assert set(plain["parameters"]) <= set(spec["parameters"])
-    assert set(spec["parameters"]) == {"images", "camera", "output", "report", "motion_report"}
+    assert set(spec["parameters"]) == {"images", "camera", "output", "report", "motion_report", "face"}
 
 
 def test_fit_video_temporal_graph_on_a_smooth_synthetic_shot(tmp_path):

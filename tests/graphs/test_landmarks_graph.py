@@ -20,7 +20,7 @@ GRAPH = Path(__file__).resolve().parents[2] / "graphs" / "landmarks.json"
 
 def test_landmarks_graph_types_ports_params_exist():
     spec = check_graph_file(GRAPH)
-    assert set(spec["parameters"]) == {"images", "output", "report"}
+    assert set(spec["parameters"]) == {"images", "output", "report", "face"}
 
 
 def _plate(tmp_path: Path) -> tuple[str, np.ndarray]:
