@@ -13,19 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["uniform_laplacian", "interpolation_matrix", "propagate_offsets"]
+from ..geometry.mesh import uniform_laplacian
 
-
-def uniform_laplacian(edges: np.ndarray, count: int):
-    """Return `L = I - Deg^-1 A` (scipy.sparse csr, (V, V)) of undirected edges (E, 2)."""
-    from scipy import sparse
-
-    i, j = edges[:, 0], edges[:, 1]
-    adj = sparse.csr_matrix((np.ones(2 * len(edges)), (np.concatenate([i, j]), np.concatenate([j, i]))),
-                            shape=(count, count))
-    degree = np.asarray(adj.sum(axis=1)).ravel()
-    inv = sparse.diags(np.where(degree > 0, 1.0 / np.maximum(degree, 1e-12), 0.0))
-    return (sparse.identity(count, format="csr") - inv @ adj).tocsr()
+__all__ = ["interpolation_matrix", "propagate_offsets"]
 
 
 def interpolation_matrix(edges: np.ndarray, count: int, samples: np.ndarray, *,

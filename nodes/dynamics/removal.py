@@ -24,7 +24,7 @@ import numpy as np
 from nodegraph import (SEQUENCE, In, InputError, JsonValue, MeshSequence, Node, NodeParams, Out,
                        Param, ParamSequence, RigidSequence, TorchModel, windowed)
 
-from ..synth.dynamics import vertex_neighbours
+from ..geometry.mesh import vertex_neighbours
 from .features import (dynamic_offsets, moving_average_target, rotate_elementwise,
                        segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
                        skull_descriptor, skull_landmarks, stabilize_points, window_gather,

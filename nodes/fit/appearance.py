@@ -79,7 +79,7 @@ def _lazy_walk(faces: np.ndarray, count: int):
     """(V, V) scipy.sparse `(I + Deg^-1 A) / 2` of the triangles' edges (the walk of `smooth_steps`)."""
     from scipy import sparse
 
-    from ..dynamics.propagate import uniform_laplacian
+    from ..geometry.mesh import uniform_laplacian
 
     edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0)
     return (sparse.identity(count, format="csr") - 0.5 * uniform_laplacian(edges, count)).tocsr()

@@ -881,13 +881,13 @@ class FitReport(Node):
 
         from ..io.image import write_image
         from ..landmarks.network import load_face_mesh
-        from ..landmarks.nodes import _network_images, draw_overlay
+        from ..landmarks.nodes import network_images, draw_overlay
         from ..render.renderer import render_mesh
         from .views import crop_to_image, network_points, render_crops
 
         fm = _fit_model(model, appearance, self.device)
         views = _views([landmarks], [boxes], [camera], self.device)
-        plate = _network_images(images)
+        plate = network_images(images)
         net = load_face_mesh(self.device)
         k = len(model.expression_names)
         written = []

@@ -36,7 +36,7 @@ from nodegraph.files import atomic_path, check_output_suffix, files_value, write
 from .correspondence import MEDIAPIPE_TO_68
 from .tracking import FACE_CHOICES
 
-__all__ = ["VIDEO_EXTENSIONS", "LoadFrames", "DetectFaces", "FaceLandmarks", "SaveLandmarks",
+__all__ = ["VIDEO_EXTENSIONS", "network_images", "LoadFrames", "DetectFaces", "FaceLandmarks", "SaveLandmarks",
            "LandmarkOverlays", "draw_overlay"]
 
 VIDEO_EXTENSIONS = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg")
@@ -49,7 +49,7 @@ def _is_video(path: str) -> bool:
     return path.lower().endswith(VIDEO_EXTENSIONS)
 
 
-def _network_images(images: ImageSequence, where: str = "images") -> np.ndarray:
+def network_images(images: ImageSequence, where: str = "images") -> np.ndarray:
     """(F, H, W, 3) sRGB-encoded RGB in [0, 1] for the networks (grey is replicated)."""
     idx = images.colour_channels()
     if not idx:
@@ -190,7 +190,7 @@ class DetectFaces(Node):
         from .tracking import follow_faces
 
         p = self.params
-        pixels = _network_images(images)
+        pixels = network_images(images)
         detector = load_face_detector(self.device)
         faces = []
         for start in range(0, len(pixels), p.batch):
@@ -247,7 +247,7 @@ class FaceLandmarks(Node):
         if rolls is not None and rolls.values.shape[1] != 1:
             raise InputError("rolls", f"expected 1 column ['roll'], found {rolls.names}")
         first_roll = np.zeros(len(boxes.values)) if rolls is None else np.nan_to_num(rolls.values[:, 0].astype(np.float64))
-        pixels = _network_images(images)
+        pixels = network_images(images)
         frames = len(pixels)
         mesh = load_face_mesh(self.device)
         heatmap = None
@@ -382,7 +382,7 @@ class LandmarkOverlays(Node):
         from ..io.image import write_image
 
         folder = Path(self.params.folder)
-        pixels = _network_images(images)
+        pixels = network_images(images)
         written = []
         for i, frame in enumerate(self.frames):
             img = draw_overlay(pixels[i], boxes.values[i], [(landmarks468.points[i], (0.0, 1.0, 0.0)),

@@ -40,7 +40,7 @@ def render_scalar_front(skull_vertices: np.ndarray, faces: np.ndarray, values: n
     from matplotlib import colormaps
 
     from ..render.renderer import render_mesh, sh_from_lights
-    from ..synth.camera import look_at
+    from ..geometry.camera import look_at
 
     lo, hi = skull_vertices.min(0), skull_vertices.max(0)
     centre = (lo + hi) / 2

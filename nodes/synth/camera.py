@@ -3,49 +3,13 @@ performances, e.g. `graphs/demo.json`)."""
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import numpy as np
 
 from nodegraph import SEQUENCE, Camera, InputError, Node, NodeParams, Out, Param
 
-__all__ = ["look_at", "LookAtCamera"]
+from ..geometry.camera import look_at
 
-
-def look_at(eye_cm: Sequence[float], target_cm: Sequence[float], up: Sequence[float] = (0.0, 1.0, 0.0)) -> np.ndarray:
-    """The world-to-camera transform of a camera at `eye_cm` looking at `target_cm`.
-
-    OpenCV convention: the camera looks down its +z, x to the right, y down; the world's `up`
-    appears up in the image.
-
-    Args:
-        eye_cm: (3,) camera centre, world, cm.
-        target_cm: (3,) point on the optical axis, world, cm.
-        up: (3,) world direction shown up (not parallel to the viewing direction).
-    Returns:
-        (4, 4) float64 rigid transform, `x_cam = E @ x_world`.
-    Raises:
-        ValueError: when eye and target coincide or `up` is parallel to the viewing direction.
-
-    Example:
-        >>> look_at([0, 0, 60], [0, 0, 0])[:3].round(6).tolist()
-        [[1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 60.0]]
-    """
-    eye, target, up_ = (np.asarray(v, np.float64) for v in (eye_cm, target_cm, up))
-    forward = target - eye
-    if np.linalg.norm(forward) < 1e-9:
-        raise ValueError(f"expected a target away from the eye, found both at {eye.tolist()}")
-    z = forward / np.linalg.norm(forward)
-    down = -(up_ - (up_ @ z) * z)
-    if np.linalg.norm(down) < 1e-9 * max(1.0, np.linalg.norm(up_)):
-        raise ValueError(f"expected an up direction not parallel to the view {z.round(6).tolist()}, found "
-                         f"{up_.tolist()}")
-    y = down / np.linalg.norm(down)
-    x = np.cross(y, z)
-    e = np.eye(4)
-    e[:3, :3] = np.stack([x, y, z])
-    e[:3, 3] = -e[:3, :3] @ eye
-    return e
+__all__ = ["look_at", "LookAtCamera"]  # look_at lives in nodes.geometry.camera
 
 
 class LookAtCamera(Node):

@@ -48,13 +48,14 @@ from pydantic import field_validator
 from nodegraph import (SEQUENCE, FaceModel, In, InputError, MeshSequence, Node, NodeParams, Out,
                        Param, ParamSequence, RigidSequence)
 
+from ..geometry.mesh import vertex_neighbours
 from .expressions import envelope
 from .head_motion import default_pivot, poses_to_matrices
 from .performance import transform_points
 
 __all__ = [
     "MOTION_PROGRAMS", "HELD_EXPRESSIONS", "parse_program", "skull_motion", "looseness_field",
-    "vertex_neighbours", "smoothing_matrix", "edge_stretch", "expression_weights", "DynamicCapture",
+    "smoothing_matrix", "edge_stretch", "expression_weights", "DynamicCapture",
     "simulate_dynamics", "DynamicPerformance",
 ]
 
@@ -183,30 +184,6 @@ def looseness_field(rest: np.ndarray) -> np.ndarray:
         d2 = ((rest - np.asarray(centre)) ** 2).sum(axis=1)
         field += weight * np.exp(-d2 / (2 * sigma * sigma))
     return np.clip(field, 0.0, 1.0)
-
-
-def vertex_neighbours(rest: np.ndarray, faces: np.ndarray, *, k: int = 6) -> np.ndarray:
-    """Undirected edges: the mesh edges, or a k-nearest-neighbour graph for a point set.
-
-    Args:
-        rest: (V, 3) positions, cm (used only when `faces` is empty).
-        faces: (T, 3) int triangles; (0, 3) for a point set.
-        k: neighbours per point for a point set.
-    Returns:
-        (E, 2) int64 unique edges (i < j), sorted.
-    """
-    faces = np.asarray(faces)
-    if faces.size:
-        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    else:
-        from scipy.spatial import cKDTree
-
-        count = min(k + 1, len(rest))
-        _, idx = cKDTree(np.asarray(rest, np.float64)).query(rest, count)
-        edges = np.stack([np.repeat(np.arange(len(rest)), count - 1), idx[:, 1:].reshape(-1)], 1)
-    edges = np.sort(edges.astype(np.int64), axis=1)
-    edges = edges[edges[:, 0] != edges[:, 1]]
-    return np.unique(edges, axis=0)
 
 
 def smoothing_matrix(rest: np.ndarray, *, sigma_cm: float = 0.8):
