@@ -34,7 +34,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 import types
-from typing import Annotated, Any, Callable, ClassVar, Mapping, Union, get_args, get_origin
+from typing import Annotated, Any, Callable, ClassVar, Literal, Mapping, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -159,6 +159,8 @@ def _number_kinds(annotation: Any) -> tuple[set[type], Any]:
         return {annotation}, None
     if annotation is bool or annotation is str:
         return {annotation}, None
+    if origin is Literal:  # Literal["a", "b"] admits those strings: a union with it takes strings
+        return {type(a) for a in get_args(annotation) if isinstance(a, (str, bool))}, None
     return set(), None
 
 

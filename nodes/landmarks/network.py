@@ -540,6 +540,11 @@ def points_roll(points: np.ndarray) -> np.ndarray:
     return np.arctan2(d[..., 1], d[..., 0])
 
 
+ROLL_DEADZONE_RAD = np.deg2rad(10.0)
+"""Rolls up to this are read from the upright crop: the face mesh reads them as well as a turned
+one, and the fit's landmarks (and the accuracy it was tuned to) stay those of the upright crop."""
+
+
 def upright_face_landmarks(images: Tensor, boxes: np.ndarray, network: LandmarkNetwork,
                            angles: np.ndarray | None = None, passes: int = 2) -> tuple[Tensor, Tensor, np.ndarray]:
     """`face_landmarks` with the crop turned upright, then re-turned by the points' own eye line.
@@ -558,10 +563,16 @@ def upright_face_landmarks(images: Tensor, boxes: np.ndarray, network: LandmarkN
     Returns:
         points (B, L, 2) image pixels, presence (B,), the roll of the last crop (B,) radians.
     """
-    theta = np.zeros(len(images)) if angles is None else np.nan_to_num(np.asarray(angles, np.float64).reshape(-1))
+    def turn(roll: np.ndarray) -> np.ndarray:  # within ROLL_DEADZONE_RAD of upright: the upright crop
+        return np.where(np.abs(roll) > ROLL_DEADZONE_RAD, roll, 0.0)
+
+    theta = turn(np.zeros(len(images)) if angles is None else np.nan_to_num(np.asarray(angles, np.float64).reshape(-1)))
     points, presence = face_landmarks(images, boxes, network, theta)
     for _ in range(passes):
         roll = points_roll(points.detach().double().cpu().numpy())
-        theta = np.where(np.isfinite(roll), roll, theta)
+        new = turn(np.where(np.isfinite(roll), roll, theta))
+        if np.array_equal(new, theta):  # nothing to turn (an upright face): the same crop again
+            break
+        theta = new
         points, presence = face_landmarks(images, boxes, network, theta)
     return points, presence, theta
