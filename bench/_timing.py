@@ -1,4 +1,4 @@
-"""Timing helper shared by the bench scripts (imported as `from _timing import median_ms`: the
+"""Timing helper shared by the bench scripts (imported as `from _timing import median_ms, best_ms`: the
 scripts run as `python bench/NAME.py`, so this folder is on the import path)."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import time
 from typing import Callable
 
 
-def median_ms(fn: Callable[[], object], repeat: int = 3) -> float:
-    """Median wall time of `fn()` in ms over `repeat` runs after one warm-up (CUDA synchronized)."""
+def times_ms(fn: Callable[[], object], repeat: int = 3) -> list[float]:
+    """Wall times of `fn()` in ms over `repeat` runs after one warm-up (CUDA synchronized)."""
     import torch
 
     fn()
@@ -20,4 +20,14 @@ def median_ms(fn: Callable[[], object], repeat: int = 3) -> float:
         if torch.cuda.is_available():
             torch.cuda.synchronize()
         times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
+    return times
+
+
+def median_ms(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Median of `times_ms`."""
+    return statistics.median(times_ms(fn, repeat))
+
+
+def best_ms(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Least of `times_ms`: the run least disturbed by other work on a shared machine."""
+    return min(times_ms(fn, repeat))

@@ -21,25 +21,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "nodes" / "landmarks"))
-
-def best_ms(fn, repeat: int) -> float:
-    """Least wall time of `fn()` in ms over `repeat` runs after one warm-up (CUDA synchronized)."""
-    fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return min(times)
+from _timing import best_ms  # noqa: E402  (bench/ is on the path: the script runs from it)
 
 
 SHIFTS = [(0.0, 0.0), (0.013, 0.007), (-0.011, 0.017), (0.021, -0.013)]
