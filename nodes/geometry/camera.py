@@ -259,7 +259,7 @@ def look_at(eye_cm: Sequence[float], target_cm: Sequence[float], up: Sequence[fl
         ValueError: when eye and target coincide or `up` is parallel to the viewing direction.
 
     Example:
-        >>> look_at([0, 0, 60], [0, 0, 0])[:3].round(6).tolist()
+        >>> (look_at([0, 0, 60], [0, 0, 0])[:3].round(6) + 0.0).tolist()  # + 0.0: no -0.0
         [[1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 60.0]]
     """
     eye, target, up_ = (np.asarray(v, np.float64) for v in (eye_cm, target_cm, up))
