@@ -124,6 +124,21 @@ class Performance(PortType):
         values = np.concatenate([self.rotation.reshape(f, 9), self.translation, self.weights], axis=1)
         return ParamSequence(values.astype(np.float32), list(POSE_COLUMNS) + list(self.expression_names))
 
+    def weights_in(self, names: list[str]) -> np.ndarray:
+        """(F, K) float32 weights in the order of K shape names (a face model's); absent shapes are 0.
+
+        Raises:
+            ValueError: when the performance has a shape `names` lacks (naming a few).
+        """
+        index = {n: i for i, n in enumerate(names)}
+        missing = [n for n in self.expression_names if n not in index]
+        if missing:
+            raise ValueError(f"expected shapes of the face model ({len(names)} shapes, e.g. {list(names[:3])}), "
+                             f"found {len(missing)} it lacks, e.g. {missing[:3]}")
+        out = np.zeros((len(self.weights), len(names)), np.float32)
+        out[:, [index[n] for n in self.expression_names]] = self.weights
+        return out
+
     def rigid(self) -> np.ndarray:
         """(F, 4, 4) float64 model-to-world transforms."""
         out = np.tile(np.eye(4), (len(self.rotation), 1, 1))

@@ -12,8 +12,8 @@ from pydantic import field_validator
 from nodegraph import SEQUENCE, Camera, Files, In, InputError, Node, NodeParams, Out, Param, Performance
 from nodegraph.files import check_output_suffix, files_value, write_text_atomic
 
-from ..io.arkit import (ANGLE_UNIT_RAD, BLEND_SHAPE_COUNT, LIVE_LINK_HEADER, eye_angles, format_timecode,
-                        head_angles, parse_timecode, to_arkit_weights)
+from ..io.arkit import (ANGLE_UNIT_RAD, ARKIT_NAMES, BLEND_SHAPE_COUNT, LIVE_LINK_HEADER, arkit_name, eye_angles,
+                        format_timecode, head_angles, parse_timecode, to_arkit_weights)
 from .scene import head_transforms
 
 __all__ = ["live_link_rows", "live_link_text", "LiveLinkCSV"]
@@ -35,9 +35,8 @@ def live_link_rows(arkit: np.ndarray, head: np.ndarray, fps: float, start: str =
     """
     weights = np.clip(np.asarray(arkit, np.float64), 0.0, 1.0)
     angles = np.concatenate([head_angles(head), eye_angles(weights)], axis=1) / ANGLE_UNIT_RAD
-    values = np.concatenate([weights, angles], axis=1) + 0.0  # + 0.0: no "-0.000000"
-    cells = np.char.mod(f"%.{decimals}f", values)
-    cells[cells == "-" + "0." + "0" * decimals] = "0." + "0" * decimals
+    cells = np.char.mod(f"%.{decimals}f", np.concatenate([weights, angles], axis=1))
+    cells[cells == "-" + "0." + "0" * decimals] = "0." + "0" * decimals  # -0.0 and -1e-9 alike: no "-0.000000"
     return [[format_timecode(first_frame + i, fps, start), str(BLEND_SHAPE_COUNT), *row]
             for i, row in enumerate(cells.tolist())]
 
@@ -82,19 +81,13 @@ class LiveLinkCSV(Node):
     def run(self, performance: Performance, camera: Camera | None = None) -> dict[str, Files]:
         if not self.params.path:
             return {"files": files_value([])}
-        arkit = to_arkit_weights(performance.weights, performance.expression_names)
-        if not len(performance.expression_names) or not np.any(_arkit_shapes_present(performance)):
+        if not any(arkit_name(n) in ARKIT_NAMES for n in performance.expression_names):
             raise InputError("performance", f"expected ARKit or ICT shape names, found "
                                             f"{performance.expression_names[:4]}")
+        arkit = to_arkit_weights(performance.weights, performance.expression_names)
         head = head_transforms(performance, camera)[:, :3, :3]
         rows = live_link_rows(arkit, head, performance.fps, self.params.start_timecode, self.params.decimals,
                               first_frame=self.frames.start)
         write_text_atomic(self.params.path, live_link_text(rows))
         self.progress(1.0, f"wrote {len(rows)} frames to {self.params.path}")
         return {"files": files_value([self.params.path])}
-
-
-def _arkit_shapes_present(performance: Performance) -> np.ndarray:
-    """(52,) bool: which ARKit shapes the performance's names cover."""
-    eye = np.eye(len(performance.expression_names))
-    return np.abs(to_arkit_weights(eye, performance.expression_names)).sum(0) > 0

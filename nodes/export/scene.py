@@ -21,17 +21,7 @@ from nodegraph.files import check_output_suffix, files_value
 
 from ..io.arkit import OPENCV_TO_ARKIT, shape_basis
 
-__all__ = ["head_transforms", "Blendshapes", "blendshapes", "check_performance", "SceneWriterParams", "SceneWriter"]
-
-
-def check_performance(performance: Performance, model: FaceModel) -> str:
-    """'' when every shape of the performance is one of the model's, else a message naming the first missing."""
-    known = set(model.expression_names)
-    missing = [n for n in performance.expression_names if n not in known]
-    if missing:
-        return (f"expected shapes of the face model ({len(known)} shapes, e.g. {model.expression_names[:3]}), "
-                f"found {len(missing)} it lacks, e.g. {missing[:3]}")
-    return ""
+__all__ = ["head_transforms", "Blendshapes", "blendshapes", "SceneWriterParams", "SceneWriter"]
 
 
 def head_transforms(performance: Performance, camera: Camera | None = None) -> np.ndarray:
@@ -73,10 +63,7 @@ def blendshapes(performance: Performance, model: FaceModel, *, asymmetry: bool =
     browInnerUp and cheekPuff is averaged away). See `nodes.io.arkit.shape_basis`.
     """
     names = list(model.expression_names)
-    index = {n: i for i, n in enumerate(names)}
-    w = np.zeros((len(performance.weights), len(names)))
-    for j, n in enumerate(performance.expression_names):
-        w[:, index[n]] = performance.weights[:, j]
+    w = performance.weights_in(names).astype(np.float64)
     out_names, a, b = shape_basis(names, asymmetry=asymmetry)
     k, v = model.expression_deltas.shape[:2]
     offsets = (b @ model.expression_deltas.reshape(k, -1).astype(np.float64)).reshape(-1, v, 3)
@@ -118,9 +105,10 @@ class SceneWriter(Node):
     def run(self, performance: Performance, model: FaceModel, camera: Camera | None = None) -> dict[str, Files]:
         if not self.params.path:
             return {"files": files_value([])}
-        problem = check_performance(performance, model)
-        if problem:
-            raise InputError("performance", problem)
+        try:
+            performance.weights_in(model.expression_names)
+        except ValueError as err:
+            raise InputError("performance", str(err)) from err
         self.write(Path(self.params.path), model, performance, camera)
         self.progress(1.0, f"wrote {performance.num_frames} frames to {self.params.path}")
         return {"files": files_value([self.params.path])}

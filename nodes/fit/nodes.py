@@ -826,8 +826,6 @@ class SaveFit(Node):
         from ..geometry.camera import project_points
 
         path = self.params.path
-        if not path.lower().endswith(".npz"):
-            raise InputError("path", f"expected a file name ending in .npz, found '{path}'")
         v = fitted.values
         k = len(model.expression_names)
         if v.shape[1] != 12 + k:

@@ -29,13 +29,7 @@ def posed_vertices(model: FaceModel, performance: Performance) -> np.ndarray:
     Raises:
         ValueError: when the performance has a shape the model lacks.
     """
-    index = {n: i for i, n in enumerate(model.expression_names)}
-    missing = [n for n in performance.expression_names if n not in index]
-    if missing:
-        raise ValueError(f"expected shapes of the face model, found {len(missing)} it lacks, e.g. {missing[:3]}")
-    weights = np.zeros((performance.num_frames, len(index)), np.float32)
-    weights[:, [index[n] for n in performance.expression_names]] = performance.weights
-    local = model.evaluate(weights)
+    local = model.evaluate(performance.weights_in(model.expression_names))
     return (np.einsum("fij,fvj->fvi", performance.rotation, local) + performance.translation[:, None]).astype(np.float32)
 
 

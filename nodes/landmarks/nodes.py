@@ -308,8 +308,6 @@ class SaveLandmarks(Node):
     def run(self, boxes: ParamSequence, landmarks68: Landmarks2D, landmarks468: Landmarks2D,
             presence: ParamSequence, failed: ParamSequence) -> dict[str, Files]:
         path = self.params.path
-        if not path.lower().endswith(".npz"):  # before any work: the write checks it too
-            raise InputError("path", f"expected a file name ending in .npz, found '{path}'")
         for port, value, shape in (("boxes", boxes.values, (4,)), ("landmarks68", landmarks68.points, (68, 2)),
                                    ("landmarks468", landmarks468.points, (468, 2)),
                                    ("presence", presence.values, (1,)), ("failed", failed.values, (1,))):

@@ -119,15 +119,14 @@ def smooth_curve(x: np.ndarray, mask: np.ndarray | None = None, *, edge_k: float
     xf = np.where(ok, x, 0.0)
     f = len(x)
     s = noise_sigma(xf, ok) if sigma is None else float(sigma)
+    filled = xf if ok.all() or not ok.any() else np.interp(np.arange(f), np.flatnonzero(ok), xf[ok])
     if f < 5 or ok.sum() < 3 or s <= 0:
-        filled = xf if ok.all() or not ok.any() else np.interp(np.arange(f), np.flatnonzero(ok), xf[ok])
         return SmoothedCurve(filled, s, 0.0, 0.0)
     m = ok.astype(np.float64)
     target = fidelity * s
 
     # first curvature weights from the data itself (lightly averaged), so a sharp event is
     # recognised before the first solve could smooth it away
-    filled = xf if ok.all() else np.interp(np.arange(f), np.flatnonzero(ok), xf[ok])
     pre = filled.copy()
     pre[1:-1] = 0.25 * filled[:-2] + 0.5 * filled[1:-1] + 0.25 * filled[2:]
     d2_pre = pre[:-2] - 2 * pre[1:-1] + pre[2:]
