@@ -7,6 +7,10 @@ Formats, by extension:
   per-vertex uv as `s`, `t`). OBJ has its own small reader and writer, because trimesh's OBJ
   loader either reorders and splits vertices at uv seams or collapses face-varying uv, and a
   MeshSequence needs the file's vertex order and its uv seams. Polygons are fan-triangulated.
+  Vertex groups: read from `g` lines (a group's vertices are the corners of its faces) and
+  written as `g` lines (a face goes in every group holding its three corners) plus one exact
+  `#vg <name> <1-based indices>` comment line per group, which the reader prefers (so a group
+  that is not a union of faces, or a single vertex, round-trips); PLY files carry no groups.
 - `.npz`: `vertices (F, V, 3)`, `faces`, optional `uv`, `uv_faces`, `groups/<name>`, `fps`.
   A chunk reads only its rows (memory-mapped when stored uncompressed, as the saver does).
 - `.usd` / `.usda` / `.usdc`: a UsdGeom.Mesh with time-sampled `points` (read and written by
@@ -82,8 +86,10 @@ def read_obj(path: str | os.PathLike) -> MeshFrame:
 
     Vertex order is the file's. When every face corner uses the same index for `v` and `vt`
     and there are as many `vt` as `v`, uv is per vertex; otherwise it is face-varying
-    (`uv_faces`). Normals, materials and groups are ignored. Negative indices are taken
-    relative to the end of the file's vertex list.
+    (`uv_faces`). Normals and materials are ignored. Vertex groups: `#vg name i j ...` lines
+    (1-based, written by `write_obj`) when present, else the corners of the faces under each
+    `g name [name ...]` line (`g default` and a bare `g` are no group). Negative indices are
+    taken relative to the end of the file's vertex list.
 
     Args:
         path: the .obj file.
@@ -94,16 +100,29 @@ def read_obj(path: str | os.PathLike) -> MeshFrame:
     """
     text = Path(path).read_text(encoding="utf-8", errors="strict").replace("\t", " ")
     records: dict[str, list[str]] = {"v": [], "vt": [], "f": []}
+    face_sets: list[int] = []  # per `f` record: index into group_sets
+    group_sets: dict[tuple[str, ...], int] = {(): 0}
+    current = 0
+    exact: list[str] = []
     for line in text.splitlines():
         key, _, rest = line.partition(" ")
         if key in records:
             records[key].append(rest)
+            if key == "f":
+                face_sets.append(current)
+        elif key == "g":
+            names = tuple(sorted(set(rest.split()) - {"default"}))
+            current = group_sets.setdefault(names, len(group_sets))
+        elif key == "#vg":
+            exact.append(rest)
     vertices = _record_numbers(records["v"], 3, _OBJ_V, text).astype(np.float32)
     uv = _record_numbers(records["vt"], 2, _OBJ_VT, text).astype(np.float32)
     lines = [line.strip() for line in records["f"]]
     nv = len(vertices)
     if not lines:
-        return MeshFrame(vertices, np.zeros((0, 3), np.int32), uv if len(uv) == nv and nv else None)
+        return MeshFrame(vertices, np.zeros((0, 3), np.int32), uv if len(uv) == nv and nv else None,
+                         None, _obj_groups(path, exact, group_sets, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                           np.zeros(0, np.int64), nv))
     counts = np.fromiter(map(len, map(str.split, lines)), dtype=np.int64, count=len(lines))
     corners = " ".join(lines).split()
     fields = corners[0].count("/") + 1
@@ -117,18 +136,52 @@ def read_obj(path: str | os.PathLike) -> MeshFrame:
     if v_idx.size and (v_idx.min() < 0 or v_idx.max() >= nv):
         raise ValueError(f"'{path}': face indices outside the {nv} vertices")
     faces = v_idx[tri].astype(np.int32)
+    groups = _obj_groups(path, exact, group_sets, np.asarray(face_sets, np.int64), counts, v_idx, nv)
     if fields < 2 or not len(uv) or (ints[:, 1] == 0).any():
-        return MeshFrame(vertices, faces, None, None)
+        return MeshFrame(vertices, faces, None, None, groups)
     t_idx = _obj_indices(ints[:, 1], len(uv))
     if t_idx.min() < 0 or t_idx.max() >= len(uv):
         raise ValueError(f"'{path}': texture indices outside the {len(uv)} uv records")
     if len(uv) == nv and np.array_equal(t_idx, v_idx):
-        return MeshFrame(vertices, faces, uv, None)
-    return MeshFrame(vertices, faces, uv, t_idx[tri].astype(np.int32))
+        return MeshFrame(vertices, faces, uv, None, groups)
+    return MeshFrame(vertices, faces, uv, t_idx[tri].astype(np.int32), groups)
+
+
+def _obj_groups(path: str | os.PathLike, exact: list[str], group_sets: dict[tuple[str, ...], int],
+                face_sets: np.ndarray, counts: np.ndarray, corner_vertices: np.ndarray,
+                nv: int) -> dict[str, np.ndarray]:
+    """Vertex groups of an OBJ file: the `#vg` lines, else the corners of each `g` group's faces.
+
+    Args:
+        exact: bodies of the `#vg name i j ...` lines (1-based indices).
+        group_sets: group-name tuple -> id, as the `g` lines set them.
+        face_sets: (P,) group-set id of each polygon.
+        counts: (P,) corners of each polygon.
+        corner_vertices: (sum(counts),) 0-based vertex of each corner.
+        nv: vertex count (the indices are checked against it).
+    Returns:
+        name -> sorted unique (N,) int64 vertex indices.
+    """
+    groups: dict[str, np.ndarray] = {}
+    owner = np.repeat(face_sets, counts) if len(face_sets) else np.zeros(0, np.int64)
+    for names, gid in group_sets.items():
+        if not names:
+            continue
+        corners = np.unique(corner_vertices[owner == gid])
+        for name in names:
+            groups[name] = np.union1d(groups[name], corners) if name in groups else corners
+    for body in exact:
+        name, _, rest = body.strip().partition(" ")
+        idx = _parse_numbers(rest.split(), np.int64) - 1 if rest.strip() else np.zeros(0, np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= nv):
+            raise ValueError(f"'{path}': vertex group '{name}' indexes vertices outside 1..{nv}")
+        groups[name] = np.unique(idx)
+    return groups
 
 
 def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
-              uv: np.ndarray | None = None, uv_faces: np.ndarray | None = None) -> None:
+              uv: np.ndarray | None = None, uv_faces: np.ndarray | None = None,
+              groups: dict[str, np.ndarray] | None = None) -> None:
     """Write an OBJ file (`v`, optional `vt`, `f`); float32 values round-trip exactly.
 
     Args:
@@ -137,21 +190,48 @@ def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
         faces: (T, 3) int.
         uv: (U, 2) or None; per vertex when `uv_faces` is None.
         uv_faces: (T, 3) int indices into `uv`, or None.
+        groups: vertex groups, name -> (N,) int vertex indices: one exact `#vg` line each, and
+            `g` lines before runs of faces whose three corners lie in the same groups (face
+            order kept). Names must be non-empty without whitespace (OBJ separates names by it).
+    Raises:
+        ValueError: a group name that OBJ cannot hold.
     """
     def rows(fmt: str, values: np.ndarray) -> str:  # one C-level format call per record kind
         return (fmt * len(values)) % tuple(values.ravel().tolist())
 
     faces = np.asarray(faces, np.int64)
+    groups = groups or {}
+    for name in groups:
+        if not name or len(name.split()) != 1 or name.split()[0] != name or name == "default":
+            raise ValueError(f"groups: expected OBJ group names without whitespace (and not "
+                             f"'default'), found {name!r}")
+    if uv is not None:
+        tex = faces if uv_faces is None else np.asarray(uv_faces, np.int64)
+        face_rows = rows("f %d/%d %d/%d %d/%d\n", np.stack([faces, tex], axis=-1) + 1).splitlines(True)
+    else:
+        face_rows = rows("f %d %d %d\n", faces + 1).splitlines(True)
     with open(path, "w", encoding="utf-8") as fh:
         fh.write("# written by nodegraph io\n")
         # float32 -> float64 is exact and %.9g round-trips any float32
         fh.write(rows("v %.9g %.9g %.9g\n", np.asarray(vertices, np.float32).astype(np.float64)))
+        for name, idx in groups.items():
+            fh.write(f"#vg {name}" + rows(" %d", np.asarray(idx, np.int64).ravel() + 1) + "\n")
         if uv is not None:
             fh.write(rows("vt %.9g %.9g\n", np.asarray(uv, np.float32).astype(np.float64)))
-            tex = faces if uv_faces is None else np.asarray(uv_faces, np.int64)
-            fh.write(rows("f %d/%d %d/%d %d/%d\n", np.stack([faces, tex], axis=-1) + 1))
-        else:
-            fh.write(rows("f %d %d %d\n", faces + 1))
+        if not groups or not len(faces):
+            fh.write("".join(face_rows))
+            return
+        names = list(groups)
+        member = np.zeros((len(names), len(vertices)), bool)
+        for k, name in enumerate(names):
+            member[k, np.asarray(groups[name], np.int64)] = True
+        inside = member[:, faces].all(axis=2)  # (G, T): face in group
+        _, sig = np.unique(inside.T, axis=0, return_inverse=True)
+        sig = sig.ravel()
+        starts = np.flatnonzero(np.r_[True, sig[1:] != sig[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(faces)]):
+            fh.write("g " + (" ".join(n for k, n in enumerate(names) if inside[k, a]) or "default") + "\n")
+            fh.write("".join(face_rows[a:b]))
 
 
 # -- PLY (trimesh) -------------------------------------------------------------------------
@@ -229,7 +309,8 @@ def _load_numbered(path: str, fmt: str, frames: range, first_frame: int | None,
         data = ref if f == 0 else _read_mesh_file(file, fmt, f)
         check_frame(f, file, data.vertices, data.faces, ref, ref_file)
         out[i] = data.vertices
-    return MeshSequence(vertices=out, faces=ref.faces, uv=ref.uv, uv_faces=ref.uv_faces, fps=fps)
+    return MeshSequence(vertices=out, faces=ref.faces, uv=ref.uv, uv_faces=ref.uv_faces,
+                        groups=dict(ref.groups), fps=fps)
 
 
 # -- NPZ ------------------------------------------------------------------------------------
@@ -372,12 +453,17 @@ def save_mesh_sequence(path: str, mesh: MeshSequence, frames: range, *, first_fr
     if fmt == "ply" and mesh.uv_faces is not None:
         raise InputError("mesh", f"'{path}': PLY stores per-vertex uv only, found face-varying uv "
                                  "(uv_faces); write OBJ, NPZ or USD instead")
+    if fmt == "obj":
+        bad = [n for n in mesh.groups if not n or n.split() != [n] or n == "default"]
+        if bad:
+            raise InputError("mesh", f"'{path}': expected vertex group names OBJ can hold (no whitespace, "
+                                     f"not 'default'), found {bad}; rename the groups or write NPZ or USD")
     written = []
     for i, f in enumerate(frames):
         file = expand_frame_pattern(path, first_frame + f)
         with atomic_path(file) as tmp:
             if fmt == "obj":
-                write_obj(tmp, mesh.vertices[i], mesh.faces, mesh.uv, mesh.uv_faces)
+                write_obj(tmp, mesh.vertices[i], mesh.faces, mesh.uv, mesh.uv_faces, mesh.groups)
             else:
                 write_ply(tmp, mesh.vertices[i], mesh.faces, mesh.uv)
         written.append(file)

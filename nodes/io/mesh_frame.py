@@ -24,12 +24,14 @@ class MeshFrame(NamedTuple):
         faces: (T, 3) int32 vertex indices.
         uv: (U, 2) float32 or None.
         uv_faces: (T, 3) int32 indices into `uv`, or None (then uv is per vertex).
+        groups: named vertex groups, name -> (N,) int64 vertex indices (empty when the file has none).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     uv: np.ndarray | None = None
     uv_faces: np.ndarray | None = None
+    groups: dict[str, np.ndarray] = {}
 
 
 def fan_triangulate(counts: np.ndarray) -> np.ndarray:

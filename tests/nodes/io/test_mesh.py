@@ -144,13 +144,16 @@ def test_round_trip_keeps_vertices_topology_uv(tmp_path, name):
     np.testing.assert_array_equal(back.faces, mesh.faces)
     np.testing.assert_allclose(back.uv, mesh.uv, rtol=0, atol=1e-7)
     assert back.uv_faces is None
-    if name.endswith(("npz", "usda", "usdc")):
+    if not name.endswith("ply"):  # PLY carries no vertex groups
         assert sorted(back.groups) == sorted(mesh.groups)
         for key, idx in mesh.groups.items():
             np.testing.assert_array_equal(back.groups[key], idx)
+    else:
+        assert back.groups == {}
+    if name.endswith(("npz", "usda", "usdc")):
         assert back.fps == mesh.fps
     else:
-        assert back.groups == {} and back.fps == 30.0
+        assert back.fps == 30.0
 
 
 @pytest.mark.parametrize("name", ["face.%04d.obj", "seq.npz", "seq.usda"])
@@ -351,3 +354,49 @@ def test_error_face_varying_uv_to_ply(tmp_path):
         save(make_mesh(2, face_varying=True), str(tmp_path / "face.%04d.ply"))
     assert err.value.port == "mesh"
     assert not os.listdir(tmp_path)
+
+
+# -- vertex groups ---------------------------------------------------------------------------
+
+def test_obj_g_lines_give_vertex_groups(tmp_path):
+    """A foreign OBJ (no #vg lines): a group's vertices are its faces' corners; a face under
+    `g a b` is in both; `g default` and faces before any `g` are in none."""
+    path = tmp_path / "groups.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\n"
+                    "f 1 2 3\ng cheek skin\nf 2 5 6\ng default\nf 1 3 4\ng skin\nf 3 2 6\n")
+    mesh = read_obj(path)
+    assert sorted(mesh.groups) == ["cheek", "skin"]
+    np.testing.assert_array_equal(mesh.groups["cheek"], [1, 4, 5])
+    np.testing.assert_array_equal(mesh.groups["skin"], [1, 2, 4, 5])
+
+
+def test_obj_group_written_exactly_and_face_order_kept(tmp_path):
+    mesh = make_mesh(2)
+    mesh.groups["one"] = np.array([17])  # a single vertex: no face holds it, #vg keeps it
+    mesh.groups["cap"] = np.unique(mesh.faces[:4])
+    save(mesh, str(tmp_path / "f.%02d.obj"))
+    text = (tmp_path / "f.00.obj").read_text()
+    assert "#vg one 18\n" in text and "\ng cap\n" in text
+    back = load(str(tmp_path / "f.%02d.obj"))
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    np.testing.assert_array_equal(back.groups["one"], [17])
+    np.testing.assert_array_equal(back.groups["face"], mesh.groups["face"])
+
+
+def test_obj_group_name_with_space_is_refused(tmp_path):
+    mesh = make_mesh(1)
+    mesh.groups["left eye"] = np.array([1, 2])
+    with pytest.raises(NodeError, match="group names OBJ can hold.*left eye"):
+        save(mesh, str(tmp_path / "f.%02d.obj"))
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("name", ["seq.npz", "seq.usda", "face.%04d.obj"])
+def test_select_region_on_a_loaded_capture(tmp_path, name):
+    """Groups survive the file, so mesh.SelectRegion cuts the region of a loaded capture."""
+    from nodes.mesh.regions import SelectRegion
+
+    mesh = make_mesh(3)
+    save(mesh, str(tmp_path / name))
+    region = run_node(SelectRegion, {"group": "face"}, mesh=load(str(tmp_path / name)))["region"]
+    np.testing.assert_allclose(region.vertices, mesh.vertices[:, :40], rtol=0, atol=1e-6)
