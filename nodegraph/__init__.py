@@ -4,11 +4,15 @@ from .errors import GraphError, GraphIssue, InputError, NodeError, NodegraphErro
 from .node import FRAMEWISE, SEQUENCE, In, Index, Kind, Node, NodeParams, Out, Param, run_node, windowed
 from .graph import Graph, PortRef
 from .runner import RunResult, explain, run
-from .types import (FaceModel, Files, FlowSequence, ImageSequence, JsonValue, Landmarks2D,
-                    MeshSequence, ParamSequence, PortType, RigidSequence, Table, TorchModel)
-from .types import Camera, CameraRig
+from .ports import PortType
+from .sequences import FlowSequence, Landmarks2D, MeshSequence, ParamSequence, RigidSequence
+from .images import ImageSequence
+from .face_model import FaceModel
+from .cameras import Camera, CameraRig
+from .models import TorchModel, register_architecture
+from .values import Files, JsonValue, Table
 from .performance import Performance
-from .models import register_architecture
+from . import types  # noqa: F401  (the one-name view of every port type, `nodegraph.types`)
 
 __all__ = [
     "GraphError", "GraphIssue", "InputError", "NodeError", "NodegraphError",

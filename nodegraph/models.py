@@ -1,4 +1,5 @@
-"""Networks as plain data: the architecture registry behind `TorchModel.build`.
+"""Networks as plain data: the `TorchModel` port type, the architecture registry behind
+`TorchModel.build`, and model files.
 
 A module that defines a network registers a builder under a stable name::
 
@@ -21,17 +22,18 @@ This module does not import torch at module level; only `build_model` does.
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .types import TorchModel
+from .ports import PortType, check_finite, fail
 
-__all__ = ["register_architecture", "architectures", "get_architecture", "build_model",
+__all__ = ["TorchModel", "register_architecture", "architectures", "get_architecture", "build_model",
            "save_model", "load_model", "save_model_safetensors", "load_model_safetensors",
            "SAFETENSORS_FORMAT"]
 
@@ -41,6 +43,96 @@ SAFETENSORS_FORMAT = "nodegraph.TorchModel/1"
 Builder = Callable[[dict[str, Any]], Any]
 
 _ARCHITECTURES: dict[str, Builder] = {}
+
+
+@dataclass(eq=False)
+class TorchModel(PortType):
+    """A trained network as plain data: architecture name, JSON config, weights.
+
+    The module is rebuilt by `build()` through the architecture registry of
+    `nodegraph.models` (a builder `(config) -> torch.nn.Module` registered under the
+    architecture name), then the weights are loaded. Stored (cache, `save`) as an npz of
+    plain arrays: no pickle anywhere. The fingerprint covers architecture, config (canonical
+    JSON, sorted keys), weights and normalization, independent of dict insertion order.
+
+    Attributes:
+        architecture: registered builder name (e.g. "dynamics.MLP").
+        config: JSON-able builder arguments.
+        state: parameter/buffer name -> array (a torch `state_dict` as numpy, dtypes kept).
+        normalization: name -> array the network's user applies around it (e.g. "input_mean",
+            "input_std" (D,) float32); empty when none.
+    """
+
+    architecture: str
+    config: dict[str, Any]
+    state: dict[str, np.ndarray]
+    normalization: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def validate(self, where: str = "") -> None:
+        where = where or f"{self.type_name} '{self.architecture}'"
+        if not isinstance(self.architecture, str) or not self.architecture:
+            fail(where, f"'architecture' must be a non-empty string, found {self.architecture!r}")
+        if not isinstance(self.config, dict):
+            fail(where, f"'config' must be a JSON object (dict), found {type(self.config).__name__}")
+        try:
+            json.dumps(self.config, allow_nan=False)
+        except (TypeError, ValueError) as err:
+            fail(where, f"'config' must be JSON-able, found {err}")
+        for group in ("state", "normalization"):
+            for key, value in getattr(self, group).items():
+                if not isinstance(value, np.ndarray) or value.dtype.kind not in "biuf":
+                    fail(where, f"'{group}['{key}']' must be a numeric numpy array, found "
+                                f"{getattr(value, 'dtype', type(value).__name__)}")
+        for key, value in self.normalization.items():  # weights may hold inf (e.g. masks)
+            check_finite(where, f"normalization['{key}']", value)
+
+    @classmethod
+    def from_module(cls, architecture: str, config: Mapping[str, Any], module: Any,
+                    normalization: Mapping[str, np.ndarray] | None = None) -> TorchModel:
+        """Capture a torch module's `state_dict` as numpy arrays (copies, dtypes preserved).
+
+        Args:
+            architecture: the registered builder name that rebuilds `module` from `config`.
+            config: JSON-able builder arguments.
+            module: a `torch.nn.Module` (any device).
+            normalization: optional name -> array (e.g. input mean/std).
+        Raises:
+            TypeError: for a tensor dtype numpy cannot hold (e.g. bfloat16), naming the key.
+        """
+        state = {}
+        for key, tensor in module.state_dict().items():
+            try:
+                state[key] = tensor.detach().cpu().numpy().copy()
+            except TypeError as err:
+                raise TypeError(f"TorchModel '{architecture}': state '{key}' has dtype "
+                                f"{tensor.dtype}, which numpy cannot hold ({err}); convert the "
+                                "module to float32/float16/float64 first") from err
+        model = cls(architecture=architecture, config=json.loads(json.dumps(dict(config))),
+                    state=state,
+                    normalization={k: np.array(v) for k, v in (normalization or {}).items()})
+        model.validate()
+        return model
+
+    def build(self, device: str = "cpu") -> Any:
+        """Construct the module through the architecture registry and load the weights.
+
+        Returns:
+            the `torch.nn.Module` on `device`, in eval mode.
+        Raises:
+            KeyError: unknown architecture (the known ones are listed).
+            ValueError: state keys, shapes or dtypes that do not match the module the
+                config builds.
+        """
+        return build_model(self, device=device)
+
+    def save(self, path: str | Any) -> None:
+        """Write the model as an npz of plain arrays (atomically, no pickle); see `load`."""
+        save_model(self, path)
+
+    @classmethod
+    def load(cls, path: str | Any) -> TorchModel:
+        """Read a model written by `save` (loaded with `allow_pickle=False`)."""
+        return load_model(path)
 
 
 def register_architecture(name: str) -> Callable[[Builder], Builder]:
@@ -95,7 +187,7 @@ def get_architecture(name: str) -> Builder:
                        "register one with nodegraph.models.register_architecture)") from None
 
 
-def _mismatches(model: "TorchModel", expected: dict[str, Any]) -> list[str]:
+def _mismatches(model: TorchModel, expected: dict[str, Any]) -> list[str]:
     """Differences between stored weights and the state_dict of the module built from config."""
     problems = []
     missing = sorted(set(expected) - set(model.state))
@@ -114,7 +206,7 @@ def _mismatches(model: "TorchModel", expected: dict[str, Any]) -> list[str]:
     return problems
 
 
-def build_model(model: "TorchModel", device: str = "cpu") -> Any:
+def build_model(model: TorchModel, device: str = "cpu") -> Any:
     """Construct `model`'s module via the registry and load its weights (bit for bit).
 
     Args:
@@ -145,7 +237,7 @@ def build_model(model: "TorchModel", device: str = "cpu") -> Any:
     return module.to(device).eval()
 
 
-def save_model(model: "TorchModel", path: str | os.PathLike) -> None:
+def save_model(model: TorchModel, path: str | os.PathLike) -> None:
     """Write `model` to `path` (.npz) through a temp file in the same folder and a rename.
 
     A path ending in `.safetensors` is written by `save_model_safetensors` instead.
@@ -161,14 +253,12 @@ def save_model(model: "TorchModel", path: str | os.PathLike) -> None:
         np.savez(fh, **arrays)
 
 
-def load_model(path: str | os.PathLike) -> "TorchModel":
+def load_model(path: str | os.PathLike) -> TorchModel:
     """Read a model written by `save_model` (no pickle).
 
     Raises:
         ValueError: "FILE: ..." for an unreadable file or one that holds no TorchModel.
     """
-    from .types import TorchModel
-
     if Path(path).suffix.lower() == ".safetensors":
         return load_model_safetensors(path)
     try:
@@ -195,7 +285,7 @@ def _json_array(array: np.ndarray) -> dict[str, Any]:
     return {"dtype": array.dtype.str, "shape": list(array.shape), "data": array.reshape(-1).tolist()}
 
 
-def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None:
+def save_model_safetensors(model: TorchModel, path: str | os.PathLike) -> None:
     """Write `model` as a `.safetensors` file (atomically: temp file in the folder, rename).
 
     Tensors: the weights, under their state keys. Metadata (strings): `format`
@@ -203,8 +293,6 @@ def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None
     {dtype, shape, data}, exact for every dtype) plus one `normalization.NAME` entry per array
     for readers that want a single one.
     """
-    import json
-
     from safetensors.numpy import save_file
 
     from .files import atomic_path  # staged inside a writer's task (see nodegraph.staging)
@@ -221,17 +309,13 @@ def save_model_safetensors(model: "TorchModel", path: str | os.PathLike) -> None
         save_file(tensors, str(tmp), metadata=metadata)
 
 
-def load_model_safetensors(path: str | os.PathLike) -> "TorchModel":
+def load_model_safetensors(path: str | os.PathLike) -> TorchModel:
     """Read a model written by `save_model_safetensors` (weights and normalization bit-exact).
 
     Raises:
         ValueError: "FILE: ..." for an unreadable file, or one without the TorchModel metadata.
     """
-    import json
-
     from safetensors import safe_open
-
-    from .types import TorchModel
 
     where = os.fspath(path)
     try:

@@ -14,7 +14,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from .types import ParamSequence, PortType, _check_array, _check_finite, _fail
+from .ports import PortType, check_array, check_finite, fail
+from .sequences import ParamSequence
 
 __all__ = ["Performance", "MATRIX_COLUMNS", "TRANSLATION_COLUMNS", "POSE_COLUMNS"]
 
@@ -60,27 +61,27 @@ class Performance(PortType):
 
     def validate(self, where: str = "") -> None:
         where = where or self.type_name
-        _check_array(where, "rotation", self.rotation, 3, (3, 3))
-        _check_array(where, "translation", self.translation, 2, (3,))
-        _check_array(where, "weights", self.weights, 2)
-        _check_array(where, "failed", self.failed, 1, kinds="b")
-        _check_array(where, "identity", self.identity, 1)
+        check_array(where, "rotation", self.rotation, 3, (3, 3))
+        check_array(where, "translation", self.translation, 2, (3,))
+        check_array(where, "weights", self.weights, 2)
+        check_array(where, "failed", self.failed, 1, kinds="b")
+        check_array(where, "identity", self.identity, 1)
         for name in ("rotation", "translation", "weights", "identity"):
-            _check_finite(where, name, getattr(self, name))
+            check_finite(where, name, getattr(self, name))
         if len(self.expression_names) != self.weights.shape[1]:
-            _fail(where, f"{len(self.expression_names)} expression names for {self.weights.shape[1]} weight columns")
+            fail(where, f"{len(self.expression_names)} expression names for {self.weights.shape[1]} weight columns")
         if len(set(self.expression_names)) != len(self.expression_names):
-            _fail(where, "expression names must be distinct")
+            fail(where, "expression names must be distinct")
         if not (isinstance(self.fps, (int, float)) and np.isfinite(self.fps) and 0 < self.fps <= 1e4):
-            _fail(where, f"'fps' must be a number in (0, 10000], found {self.fps!r}")
+            fail(where, f"'fps' must be a number in (0, 10000], found {self.fps!r}")
         if len(self.rotation):
             rot = self.rotation.astype(np.float64)
             err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
             det = np.linalg.det(rot)
             bad = np.flatnonzero((err > _ROTATION_TOL) | (det < 0))
             if bad.size:
-                _fail(where, f"'rotation' of frame {int(bad[0])} is not a rotation (|R R^T - I| = "
-                             f"{err[bad[0]]:.3g}, det {det[bad[0]]:.3g})")
+                fail(where, f"'rotation' of frame {int(bad[0])} is not a rotation (|R R^T - I| = "
+                            f"{err[bad[0]]:.3g}, det {det[bad[0]]:.3g})")
         super().validate(where)
 
     # -- the fitted ParamSequence layout --------------------------------------------------
@@ -105,8 +106,8 @@ class Performance(PortType):
         names = list(fitted.names)
         if tuple(names[:12]) != POSE_COLUMNS:
             missing = [n for n in POSE_COLUMNS if n not in names]
-            _fail(where, f"expected the columns {list(POSE_COLUMNS)} first (a fitted sequence of nodes.fit), "
-                         f"found {names[:12]}" + (f" (missing {missing})" if missing else ""))
+            fail(where, f"expected the columns {list(POSE_COLUMNS)} first (a fitted sequence of nodes.fit), "
+                        f"found {names[:12]}" + (f" (missing {missing})" if missing else ""))
         values = np.asarray(fitted.values, np.float32)
         f = len(values)
         good = np.isfinite(values).all(axis=1)
