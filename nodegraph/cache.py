@@ -54,7 +54,7 @@ from .staging import unstaged
 from .types import Files, PortType, port_type_by_name
 
 __all__ = ["DEFAULT_CACHE", "MARKER", "COPY_LIMIT", "cache_dir_from_env", "canonical_json", "make_key",
-           "Cache", "CorruptEntry", "NotACache"]
+           "Cache", "CorruptEntry", "NotACache", "resolve_cache"]
 
 DEFAULT_CACHE = ".nodegraph/cache"
 MARKER = "NODEGRAPH_CACHE"
@@ -559,6 +559,16 @@ class Cache:
             return time.time() - folder.stat().st_mtime > 3600
         except FileNotFoundError:
             return False
+
+
+def resolve_cache(cache: "Cache | str | os.PathLike | bool | None") -> "Cache | None":
+    """The cache a run uses from its `cache` argument: None or True: `cache_dir_from_env()`;
+    False: no cache (None); a folder: a Cache there; a Cache: itself."""
+    if cache is False:
+        return None
+    if cache is None or cache is True:
+        return Cache(cache_dir_from_env())
+    return cache if isinstance(cache, Cache) else Cache(cache)
 
 
 def _digest(text: str) -> str:

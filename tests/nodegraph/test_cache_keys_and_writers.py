@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import nodegraph.runner
+import nodegraph.tasks
 from nodegraph import Graph, run
 from nodegraph.cache import Cache
 from nodegraph.schedule import plan_run
@@ -148,7 +148,7 @@ def test_writer_is_skipped_when_files_are_intact_and_rewrites_exactly_a_deleted_
 
 
 def test_writer_without_copies_reruns_only_the_chunk_whose_file_changed(tmp_path, cache_dir, monkeypatch):
-    monkeypatch.setattr(nodegraph.runner, "COPY_LIMIT", 0)
+    monkeypatch.setattr(nodegraph.tasks, "COPY_LIMIT", 0)
     pattern = str(tmp_path / "out" / "v{frame}.txt")
     run(_writer_graph(pattern), chunk=10, scheduler="sync", cache=cache_dir, outputs=["write"])
     victim = tmp_path / "out" / "v25.txt"

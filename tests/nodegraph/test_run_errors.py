@@ -10,7 +10,7 @@ import time
 import pytest
 
 from nodegraph import Graph, NodeParams, Param, run
-from nodegraph import registry, runner
+from nodegraph import dask_run, registry, runner
 from nodegraph.cli import main
 from nodegraph.errors import GraphError, NodeError, SchedulerError
 from nodegraph.graph import parse_value
@@ -56,7 +56,7 @@ def test_unknown_scheduler_is_refused_before_planning():
 def test_unreachable_scheduler_fails_fast_with_exit_2(graph_file, cache_dir, capsys, monkeypatch):
     pytest.importorskip("distributed")
     assert runner.CONNECT_TIMEOUT_S <= 10
-    monkeypatch.setattr(runner, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(dask_run, "CONNECT_TIMEOUT_S", 1.0)
     with socket.socket() as sock:  # a port nothing listens on
         sock.bind(("127.0.0.1", 0))
         address = f"tcp://127.0.0.1:{sock.getsockname()[1]}"

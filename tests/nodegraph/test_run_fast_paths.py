@@ -13,7 +13,7 @@ import pytest
 
 from nodegraph import Graph, MeshSequence, ParamSequence, run
 from nodegraph.cache import Cache
-from nodegraph.runner import TaskResult, _CombinedInputs
+from nodegraph.tasks import TaskResult, _CombinedInputs
 
 
 def _fan_out(num_frames: int = 40) -> Graph:
