@@ -160,13 +160,24 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         force: node ids to recompute even when cached (with their descendants).
     Raises:
         GraphError: invalid graph, unknown target, or sources that disagree on the frame count.
-        NodeError: a node rejected its parameters or files while planning (bad_input).
+        NodeError: a node rejected its parameters or files while planning (bad_input), or its
+            optional `check_plan(producers)` hook (input port -> the producing node instances,
+            in edge order) raised: a node can so refuse, before anything runs, what its
+            producers' parameters and files already tell (e.g. a network file that does not fit
+            the capture file's topology).
     """
     graph.check()
     order = graph.topological_order()
     nodes = {nid: graph.instantiate(nid) for nid in order}
     ups = {nid: graph.upstream_lists(nid) for nid in order}
     modes = {nid: _mode(nodes[nid], ups[nid]) for nid in order}
+    for nid in order:  # optional early check of a node against its direct producers (before anything runs)
+        check = getattr(nodes[nid], "check_plan", None)
+        if check is not None:
+            try:
+                check({port: [nodes[src.node] for src in sources] for port, sources in ups[nid].items()})
+            except Exception as err:
+                raise wrap_error(nodes[nid], err, bad_input=True) from err
     issues = []
     for nid in order:
         if modes[nid] == "chunk":

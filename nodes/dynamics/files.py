@@ -62,6 +62,14 @@ class LoadModel(Node):
     def input_files(self, frames: range | None = None) -> list[Path]:
         return [Path(self.params.path) if self.params.path else BUNDLED_REMOVAL]
 
+    def peek_model(self) -> TorchModel | None:
+        """The network, read while planning (for consumers' `check_plan`); None when unreadable
+        (the run then reports why)."""
+        try:
+            return self.run()["model"]
+        except (InputError, OSError, ValueError):
+            return None
+
     def run(self) -> dict:
         path = self.params.path or str(BUNDLED_REMOVAL)
         _check_suffix(path)

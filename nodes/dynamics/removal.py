@@ -11,7 +11,11 @@ The model (`TorchModel`, architecture "dynamics.MLP") carries what applying it n
 config `kind` = "removal", `window`, `feature_fps`, `num_vertices`; normalization
 `input_mean`, `input_std`, `output_mean`, `output_std`, `sample_ids` (N,), `skull_landmarks`
 (5, 3) cm, `rest_vertices` (V, 3) cm (the training rest shape, for the neighbour graph of
-point sets).
+point sets). A network trained on a region of a bigger mesh (e.g. the ICT head's 'face')
+records it: config `region` (the group's name) and `whole_vertices` (the whole mesh's vertex
+count), normalization `region_ids` (V,) (the region's vertices in the whole mesh, in the
+training vertex order). `dynamics.RemoveDynamics` then also takes a capture of the whole mesh:
+it cuts the region, removes its dynamics and puts it back (the rest of the mesh unchanged).
 """
 
 from __future__ import annotations
@@ -21,18 +25,20 @@ from typing import Any, Literal
 
 import numpy as np
 
-from nodegraph import (SEQUENCE, In, InputError, JsonValue, MeshSequence, Node, NodeParams, Out,
-                       Param, ParamSequence, RigidSequence, TorchModel, windowed)
+from nodegraph import (SEQUENCE, FaceModel, In, InputError, JsonValue, MeshSequence, Node, NodeParams,
+                       Out, Param, ParamSequence, RigidSequence, TorchModel, windowed)
 
 from ..geometry.mesh import vertex_neighbours
+from ..mesh.regions import select_region
 from .features import (dynamic_offsets, moving_average_target, rotate_elementwise,
                        segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
                        skull_descriptor, skull_landmarks, stabilize_points, window_gather,
                        window_reach)
 from .networks import predict, single_thread, standardize_stats, train_mlp
-from .propagate import interpolation_matrix, propagate_offsets
+from .propagate import cached_interpolation_matrix, propagate_offsets
 
-__all__ = ["HALO", "region_vertices", "check_model", "model_edges", "TrainRemoval", "RemoveDynamics"]
+__all__ = ["HALO", "region_vertices", "topology_problem", "check_model", "locate_region", "model_edges",
+           "TrainRemoval", "RemoveDynamics"]
 
 HALO = 16
 """Halo of the windowed dynamics nodes (frames): the window of w = 10 samples at the feature
@@ -49,29 +55,96 @@ def region_vertices(mesh: MeshSequence, region: str, param: str = "region") -> n
     return np.asarray(mesh.groups[region], np.int64)
 
 
-def check_model(model: TorchModel, kind: str, mesh: MeshSequence, fps: float, port: str = "model") -> None:
-    """Check that `model` is a dynamics network of `kind` that fits `mesh` at `fps`."""
+def topology_problem(model: TorchModel, num_vertices: int, *, whole: bool = True) -> str:
+    """'' when a capture of `num_vertices` vertices fits `model` (its training topology, or with
+    `whole` the whole mesh the model's recorded region was cut from); else what the model
+    expects, what was found and how to get a capture that fits."""
+    count = int(model.config["num_vertices"])
+    region = str(model.config.get("region", "") or "")
+    whole_count = int(model.config.get("whole_vertices", 0) or 0)
+    if num_vertices == count or (whole and region and num_vertices == whole_count):
+        return ""
+    if region and whole_count:
+        expect = (f"a capture of the network's training topology ({count} vertices: region "
+                  f"'{region}' of a {whole_count}-vertex mesh" + (", e.g. io.LoadFaceModel region "
+                  f"'{region}'" if region == "face" else "") + ")" +
+                  (f" or of that whole {whole_count}-vertex mesh (its region is cut and put back)"
+                   if whole else ""))
+        hint = (f"cut the region out of your capture with mesh.SelectRegion (group '{region}') when its "
+                f"topology contains it, or train a network on your own captures with "
+                f"graphs/dynamics_train_captures.json")
+    else:
+        expect = f"a capture of the network's training topology ({count} vertices)"
+        hint = ("cut that region out of your capture (mesh.SelectRegion), or train a network on your "
+                "own captures with graphs/dynamics_train_captures.json")
+    return f"expected {expect}, found {num_vertices} vertices; {hint}"
+
+
+def check_model(model: TorchModel, kind: str, mesh: MeshSequence, fps: float, port: str = "model",
+                *, whole: bool = False, mesh_port: str = "capture") -> np.ndarray | None:
+    """Check that `model` is a dynamics network of `kind` that fits `mesh` at `fps`.
+
+    Returns:
+        None when `mesh` has the training topology; with `whole`, the recorded region's vertex
+        indices (V,) int64 when `mesh` is the whole mesh that region was cut from.
+    """
     found = model.config.get("kind")
     if model.architecture != "dynamics.MLP" or found != kind:
         raise InputError(port, f"expected a dynamics.MLP {kind} network (dynamics.Train"
                                f"{'Removal' if kind == 'removal' else 'Synthesis'}), found "
                                f"architecture '{model.architecture}' kind {found!r}")
-    count = int(model.config["num_vertices"])
-    if mesh.num_vertices != count:
-        raise InputError(port, f"expected a capture of the training topology ({count} vertices), "
-                               f"found {mesh.num_vertices} vertices")
+    problem = topology_problem(model, mesh.num_vertices, whole=whole)
+    if problem:
+        raise InputError(mesh_port, problem)
     reach = window_reach(int(model.config["window"]), fps, float(model.config["feature_fps"]))
     if reach > HALO:
         top = (HALO - 3) * float(model.config["feature_fps"]) / int(model.config["window"])
         raise InputError("fps", f"expected a frame rate up to {top:g} fps for this network "
                                 f"(window {model.config['window']} at {model.config['feature_fps']} "
                                 f"fps), found {fps:g}")
+    count = int(model.config["num_vertices"])
+    if mesh.num_vertices == count:
+        return None
+    ids = np.asarray(model.normalization["region_ids"], np.int64)
+    if len(ids) != count or ids.min() < 0 or ids.max() >= mesh.num_vertices:
+        raise InputError(port, f"expected a region vertex list of {count} indices below "
+                               f"{mesh.num_vertices} in the network file, found {len(ids)} indices")
+    return ids
 
 
 def model_edges(mesh: MeshSequence, model: TorchModel) -> np.ndarray:
     """Neighbour edges for propagation: the mesh's, else a kNN graph of the training rest shape."""
     rest = model.normalization["rest_vertices"]
     return vertex_neighbours(rest, mesh.faces)
+
+
+def locate_region(part: FaceModel, whole: FaceModel, tol_cm: float = 1e-4) -> np.ndarray:
+    """The vertex of `whole` that each vertex of `part` (a region and/or subsample of it) is.
+
+    Vertices are matched by their neutral position and identity deltas (both must agree within
+    `tol_cm`), so coinciding vertices with different identity behaviour are told apart.
+
+    Returns:
+        (V_part,) int64 indices into `whole`, in `part`'s vertex order.
+    Raises:
+        InputError: (port "region_model") a vertex that is not in `whole`, or two vertices of
+            `part` on the same vertex of `whole`.
+    """
+    from scipy.spatial import cKDTree
+
+    def rows(model: FaceModel) -> np.ndarray:
+        ident = model.identity_deltas[:3].transpose(1, 0, 2).reshape(len(model.neutral), -1)
+        return np.concatenate([model.neutral, ident], axis=1).astype(np.float64)
+
+    dist, ids = cKDTree(rows(whole)).query(rows(part), k=1)
+    if len(dist) and dist.max() > tol_cm:
+        bad = int(np.argmax(dist))
+        raise InputError("region_model", f"expected a region of the whole model, found vertex {bad} "
+                                         f"{dist[bad]:.3g} cm from every vertex of it")
+    if len(np.unique(ids)) != len(ids):
+        raise InputError("region_model", "expected distinct vertices of the whole model, found "
+                                         f"{len(ids) - len(np.unique(ids))} vertices matched twice")
+    return ids.astype(np.int64)
 
 
 def _fps(param: float, mesh: MeshSequence) -> float:
@@ -110,8 +183,16 @@ class TrainRemoval(Node):
         lr: float = Param(1e-3, gt=0, description="Adam learning rate")
         max_rows: int = Param(200000, ge=1, description="(frame, sample) rows drawn for training")
         seed: int | None = Param(None, ge=0, description="seed of the weight initialisation and of the row and batch order; none = derived from the task's cache key (it then changes with the inputs, parameters and code version); an integer pins training across versions")
+        region_name: str = Param("face", description="name recorded for the captures' region of the whole "
+                                 "model (with `whole` and `region_model` connected): messages and the "
+                                 "hint to cut it with mesh.SelectRegion name it")
 
     captures = In(MeshSequence, many=True, doc="world-space dynamic captures (cm)")
+    whole = In(FaceModel, optional=True, doc="the whole face model (io.LoadFaceModel, no region); with "
+                                            "`region_model`, the network records where the captures' "
+                                            "vertices lie in it and so also cleans whole-head captures")
+    region_model = In(FaceModel, optional=True, doc="the face model the captures are of (io.LoadFaceModel "
+                                                   "with region / max_vertices)")
     skulls = In(RigidSequence, many=True, doc="skull-to-world transforms, one per capture")
     quasistatic = In(MeshSequence, many=True, optional=True,
                      doc="true world-space quasistatic sequences (for target 'truth')")
@@ -121,12 +202,20 @@ class TrainRemoval(Node):
     report = Out(JsonValue, doc="rows, epochs, seconds, losses")
 
     def run(self, captures: list[MeshSequence], skulls: list[RigidSequence],
-            quasistatic: list[MeshSequence], segments: list[ParamSequence]) -> dict:
+            quasistatic: list[MeshSequence], segments: list[ParamSequence],
+            whole: FaceModel | None = None, region_model: FaceModel | None = None) -> dict:
         p = self.params
         count = _check_lists(captures=captures, skulls=skulls, quasistatic=quasistatic, segments=segments)
-        if p.target == "truth" and not quasistatic:
-            raise InputError("quasistatic", "expected one quasistatic sequence per capture for "
-                                            "target 'truth', found none connected")
+        region_ids = None
+        if (whole is None) != (region_model is None):
+            raise InputError("whole" if whole is None else "region_model",
+                             "expected both `whole` and `region_model` connected (to record the region), "
+                             "found one")
+        if whole is not None:
+            region_ids = locate_region(region_model, whole)
+            if len(region_ids) != captures[0].num_vertices:
+                raise InputError("region_model", f"expected the captures' {captures[0].num_vertices} "
+                                                 f"vertices, found {len(region_ids)}")
         first = captures[0]
         for i, c in enumerate(captures):
             if c.num_vertices != first.num_vertices:
@@ -182,6 +271,9 @@ class TrainRemoval(Node):
         norm = {"input_mean": in_mean, "input_std": in_std, "output_mean": out_mean,
                 "output_std": out_std, "sample_ids": samples.astype(np.int64),
                 "skull_landmarks": landmarks, "rest_vertices": rest.astype(np.float32)}
+        if region_ids is not None:
+            config.update(region=p.region_name, whole_vertices=int(whole.neutral.shape[0]))
+            norm["region_ids"] = region_ids
         model = TorchModel.from_module("dynamics.MLP", config, result.module, norm)
         report = {"rows": int(len(x_all)), "epochs": p.epochs, "seconds": round(result.seconds, 3),
                   "final_loss": result.losses[-1], "losses": [round(v, 6) for v in result.losses]}
@@ -217,23 +309,54 @@ class RemoveDynamics(Node):
         constraint_weight: float = Param(100.0, gt=0, description="weight of the sample offsets "
                                                                   "against smoothness in propagation")
 
-    capture = In(MeshSequence, doc="world-space capture with dynamics (cm), training topology")
+    capture = In(MeshSequence, doc="world-space capture with dynamics (cm): the training topology, or the "
+                                   "whole mesh whose region the network records (the region is cleaned, the "
+                                   "rest kept)")
     skull = In(RigidSequence, doc="skull-to-world transforms")
     model = In(TorchModel, doc="removal network F (dynamics.TrainRemoval / dynamics.LoadModel)")
     quasistatic = Out(MeshSequence, doc="world-space capture without secondary dynamics (cm)")
     offsets = Out(MeshSequence, doc="removed dynamic offsets per vertex, skull frame (cm)")
 
+    def check_plan(self, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs: when the network comes from a file reader (`peek_model`) and the
+        capture from one that knows its vertex count (`peek_vertex_count`), refuse a capture
+        that does not fit the network (one error for the run, not one per chunk)."""
+        model_nodes = [n for n in producers.get("model", []) if hasattr(n, "peek_model")]
+        capture_nodes = [n for n in producers.get("capture", []) if hasattr(n, "peek_vertex_count")]
+        if not model_nodes or not capture_nodes:
+            return  # other producers: run() checks the values
+        model, count = model_nodes[0].peek_model(), capture_nodes[0].peek_vertex_count()
+        if model is None or count is None:
+            return  # unreadable files: their readers report them
+        found = model.config.get("kind")
+        if model.architecture != "dynamics.MLP" or found != "removal":
+            raise InputError("model", f"expected a dynamics.MLP removal network (dynamics.TrainRemoval), "
+                                      f"found architecture '{model.architecture}' kind {found!r}")
+        problem = topology_problem(model, count, whole=True)
+        if problem:
+            raise InputError("capture", problem)
+
     def run(self, capture: MeshSequence, skull: RigidSequence, model: TorchModel) -> dict:
         fps = _fps(self.params.fps, capture)
-        check_model(model, "removal", capture, fps)
+        region = check_model(model, "removal", capture, fps, whole=True)
         if capture.num_frames < 2:
             raise InputError("capture", f"expected at least 2 frames, found {capture.num_frames}")
+        work = capture if region is None else select_region(capture, region)
+        if region is not None and work.faces.size and len(np.unique(work.faces)) < work.num_vertices:
+            work = dataclasses.replace(work, faces=np.zeros((0, 3), np.int32))  # a point subset of the
+            # mesh (trained on io.LoadFaceModel max_vertices): neighbours from the rest shape, as in training
         ids = model.normalization["sample_ids"]
-        sample = predict_removal(model, capture.vertices, skull.matrices, fps)
-        weights = interpolation_matrix(model_edges(capture, model), capture.num_vertices, ids,
-                                       constraint_weight=self.params.constraint_weight)
+        sample = predict_removal(model, work.vertices, skull.matrices, fps)
+        weights = cached_interpolation_matrix(model_edges(work, model), work.num_vertices, ids,
+                                              constraint_weight=self.params.constraint_weight)
         full = propagate_offsets(weights, sample)  # (F, V, 3), skull frame
         world = rotate_elementwise(skull.matrices[:, :3, :3], full)
-        quasi = (capture.vertices.astype(np.float64) - world).astype(np.float32)
+        quasi = (work.vertices.astype(np.float64) - world).astype(np.float32)
+        if region is not None:  # back into the whole mesh; outside the region nothing changes
+            quasi_whole = np.array(capture.vertices, np.float32)
+            quasi_whole[:, region] = quasi
+            full_whole = np.zeros(capture.vertices.shape)
+            full_whole[:, region] = full
+            quasi, full = quasi_whole, full_whole
         return {"quasistatic": dataclasses.replace(capture, vertices=quasi, fps=fps),
                 "offsets": dataclasses.replace(capture, vertices=full.astype(np.float32), fps=fps)}

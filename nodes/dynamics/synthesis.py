@@ -24,7 +24,7 @@ from .features import (apply_rigid_elementwise, dynamic_offsets, rotate_elementw
                        segment_margin_mask, select_samples, skull_descriptor, skull_landmarks,
                        stabilize_points, stretch_stencil, surface_stretch, window_reach)
 from .networks import predict, single_thread, standardize_stats, train_mlp
-from .propagate import interpolation_matrix, propagate_offsets
+from .propagate import cached_interpolation_matrix, propagate_offsets
 from .removal import HALO, _check_lists, _fps, check_model, model_edges, region_vertices
 
 __all__ = ["synthesis_inputs", "predict_synthesis", "TrainSynthesis", "SynthesizeDynamics", "Retarget"]
@@ -154,16 +154,16 @@ class SynthesizeDynamics(Node):
     def run(self, quasistatic: MeshSequence, skull: RigidSequence, neutral: MeshSequence,
             model: TorchModel) -> dict:
         fps = _fps(self.params.fps, quasistatic)
-        check_model(model, "synthesis", quasistatic, fps)
+        check_model(model, "synthesis", quasistatic, fps, mesh_port="quasistatic")
         if neutral.num_frames != 1 or neutral.num_vertices != quasistatic.num_vertices:
             raise InputError("neutral", f"expected one frame of {quasistatic.num_vertices} vertices, "
                                         f"found {neutral.num_frames} frames of {neutral.num_vertices}")
         if quasistatic.num_frames < 2:
             raise InputError("quasistatic", f"expected at least 2 frames, found {quasistatic.num_frames}")
         sample = predict_synthesis(model, quasistatic.vertices, skull.matrices, neutral.vertices[0], fps)
-        weights = interpolation_matrix(model_edges(quasistatic, model), quasistatic.num_vertices,
-                                       model.normalization["sample_ids"],
-                                       constraint_weight=self.params.constraint_weight)
+        weights = cached_interpolation_matrix(model_edges(quasistatic, model), quasistatic.num_vertices,
+                                              model.normalization["sample_ids"],
+                                              constraint_weight=self.params.constraint_weight)
         full = propagate_offsets(weights, sample)
         world = rotate_elementwise(skull.matrices[:, :3, :3], full)
         out = (quasistatic.vertices.astype(np.float64) + world).astype(np.float32)

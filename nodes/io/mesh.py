@@ -499,6 +499,19 @@ class LoadMeshSequence(Node):
             load_mesh_sequence(p.path, range(0, 1), prim=p.prim, first_frame=p.first_frame, fps=p.fps)
         return count
 
+    def peek_vertex_count(self) -> int | None:
+        """The vertex count of the file's topology, read while planning (for consumers'
+        `check_plan`, e.g. a network that fits one topology); None when unreadable (the run
+        then reports why)."""
+        p = self.params
+        try:
+            if format_of(p.path, MESH_FORMATS) == "npz" and frame_token(p.path) is None:
+                return int(npz_shape(p.path, "vertices")[0][1])
+            return load_mesh_sequence(p.path, range(0, 1), prim=p.prim, first_frame=p.first_frame,
+                                      fps=p.fps).num_vertices
+        except (InputError, OSError, ValueError, KeyError, IndexError, zipfile.BadZipFile):
+            return None
+
     def input_files(self, frames: range | None = None) -> list[Path]:
         """All files; for a chunk of numbered files, the first file (every chunk reads its
         topology) and the chunk's own frames' files only."""
