@@ -124,8 +124,21 @@ def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int,
         k = int(min(x1 - x0, y1 - y0) / size)
         offset, step = 0.0, 1.0
         if k >= 2:  # box filter before the bilinear shrink; pooled pixel i covers k i .. k i + k - 1
-            img = F.avg_pool2d(F.pad(img, (0, (-img.shape[3]) % k, 0, (-img.shape[2]) % k)), k)
+            # only the part of the image the crop samples (with a margin of 2 pooled pixels), cut
+            # at multiples of k so that the blocks are those of pooling the whole image
+            c = float(np.cos(angles[b])) if angles is not None else 1.0
+            s = float(np.sin(angles[b])) if angles is not None else 0.0
+            reach_x = (abs(c) * (x1 - x0) + abs(s) * (y1 - y0)) / 2 + 2 * k
+            reach_y = (abs(s) * (x1 - x0) + abs(c) * (y1 - y0)) / 2 + 2 * k
+            cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+            left = min(max(int(np.floor((cx - reach_x) / k)) * k, 0), (img.shape[3] - 1) // k * k)
+            top = min(max(int(np.floor((cy - reach_y) / k)) * k, 0), (img.shape[2] - 1) // k * k)
+            right = min(max(int(np.ceil((cx + reach_x) / k)) * k, left + k), img.shape[3] + (-img.shape[3]) % k)
+            bottom = min(max(int(np.ceil((cy + reach_y) / k)) * k, top + k), img.shape[2] + (-img.shape[2]) % k)
+            img = img[:, :, top:bottom, left:right]
+            img = F.avg_pool2d(F.pad(img, (0, right - left - img.shape[3], 0, bottom - top - img.shape[2])), k)
             offset, step = (k - 1) / 2.0, float(k)
+            x0, x1, y0, y1 = x0 - left, x1 - left, y0 - top, y1 - top
         h, w = img.shape[2], img.shape[3]
         if angles is None or angles[b] == 0.0:
             xs, ys = torch.broadcast_tensors((x0 + t * (x1 - x0))[None, :], (y0 + t * (y1 - y0))[:, None])

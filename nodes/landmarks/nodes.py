@@ -34,10 +34,10 @@ from nodegraph.node import _number_problem
 from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
 from .correspondence import MEDIAPIPE_TO_68
-from .tracking import FACE_CHOICES
+from .tracking import FACE_CHOICES, FAILURE_REASONS
 
-__all__ = ["VIDEO_EXTENSIONS", "network_images", "LoadFrames", "DetectFaces", "FaceLandmarks", "SaveLandmarks",
-           "LandmarkOverlays", "draw_overlay"]
+__all__ = ["VIDEO_EXTENSIONS", "network_images", "LoadFrames", "DetectFaces", "FaceLandmarks", "TrackFaces",
+           "SaveLandmarks", "LandmarkOverlays", "draw_overlay"]
 
 VIDEO_EXTENSIONS = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg")
 """Extensions `landmarks.LoadFrames` reads as video; anything else is an image pattern."""
@@ -124,6 +124,43 @@ def _face_problem(value: object) -> str:
     return f"expected one of {list(FACE_CHOICES)}, an index >= 0 or a box [x0, y0, x1, y1], found {value!r}"
 
 
+class _FaceParams(NodeParams):
+    """Which face and the detector's settings (`landmarks.DetectFaces`, `landmarks.TrackFaces`)."""
+
+    face: Literal["largest", "centre", "score"] | Index | Annotated[list[float], Field(min_length=4, max_length=4)] = \
+        Param("largest", description="Which face: 'largest' (box area), 'centre' (nearest the image centre), "
+              "'score' (most confident), an index in reading order (0 = leftmost box centre; ties top to "
+              "bottom) or a box [x0, y0, x1, y1] in pixels (the detection overlapping it most). Applied on the "
+              "first frame where it finds a face; later frames follow that person.")
+    min_face_px: float = Param(40.0, ge=0, description="Smallest face looked for: its detector box side, "
+                               "pixels (about 2.1 eye distances). Finer pyramid levels are added only when the "
+                               "whole frame (squeezed to 128 x 128) would miss such a face: none for frames of "
+                               "at most 256 px at 40; 0 = the whole frame only.")
+    pyramid_min_score: float = Param(0.7, ge=0, le=1, description="Least score of a detection from the finer "
+                                     "pyramid levels (they see many more background windows).")
+    min_score: float = Param(0.5, ge=0, le=1, description="Detections below this score are dropped.")
+    iou: float = Param(0.3, gt=0, le=1, description="Overlap (IoU) of the weighted non-maximum suppression.")
+    box_scale: float = Param(1.5, gt=0, description="Crop side over the longer side of the face box.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _strict_numbers(cls, data: Any) -> Any:
+        # Replaces NodeParams' check of the same name, which reads the Literal names of `face`
+        # as "expected an integer"; the other fields get the same check as there.
+        if isinstance(data, dict):
+            for name, value in data.items():
+                if name == "face":
+                    problem = _face_problem(value)
+                elif name in cls.model_fields:
+                    info = cls.model_fields[name]
+                    problem = _number_problem(info.annotation, value, tuple(info.metadata))
+                else:
+                    continue
+                if problem:
+                    raise ValueError(f"'{name}': {problem}")
+        return data
+
+
 class DetectFaces(Node):
     """Detect faces over an image pyramid, choose one, follow it; give its face-mesh crop box.
 
@@ -138,43 +175,11 @@ class DetectFaces(Node):
     kind = SEQUENCE
     resources = {"gpu": 1}
 
-    class Params(NodeParams):
-        face: Literal["largest", "centre", "score"] | Index | Annotated[list[float], Field(min_length=4, max_length=4)] = \
-            Param("largest", description="Which face: 'largest' (box area), 'centre' (nearest the image centre), "
-                  "'score' (most confident), an index in reading order (0 = leftmost box centre; ties top to "
-                  "bottom) or a box [x0, y0, x1, y1] in pixels (the detection overlapping it most). Applied on the "
-                  "first frame where it finds a face; later frames follow that person.")
+    class Params(_FaceParams):
         track_iou: float = Param(0.3, gt=0, le=1, description="Least overlap (IoU) with the previous frame's face "
                                  "that continues following it; below it the frame fails and the choice is made "
                                  "again on the next frame.")
-        min_face_px: float = Param(40.0, ge=0, description="Smallest face looked for: its detector box side, "
-                                   "pixels (about 2.1 eye distances). Finer pyramid levels are added only when the "
-                                   "whole frame (squeezed to 128 x 128) would miss such a face: none for frames of "
-                                   "at most 256 px at 40; 0 = the whole frame only.")
-        pyramid_min_score: float = Param(0.7, ge=0, le=1, description="Least score of a detection from the finer "
-                                         "pyramid levels (they see many more background windows).")
-        min_score: float = Param(0.5, ge=0, le=1, description="Detections below this score are dropped.")
-        iou: float = Param(0.3, gt=0, le=1, description="Overlap (IoU) of the weighted non-maximum suppression.")
-        box_scale: float = Param(1.5, gt=0, description="Crop side over the longer side of the face box.")
         batch: int = Param(8, ge=1, description="Frames per network call.", affects_output=False)
-
-        @model_validator(mode="before")
-        @classmethod
-        def _strict_numbers(cls, data: Any) -> Any:
-            # Replaces NodeParams' check of the same name, which reads the Literal names of `face`
-            # as "expected an integer"; the other fields get the same check as there.
-            if isinstance(data, dict):
-                for name, value in data.items():
-                    if name == "face":
-                        problem = _face_problem(value)
-                    elif name in cls.model_fields:
-                        info = cls.model_fields[name]
-                        problem = _number_problem(info.annotation, value, tuple(info.metadata))
-                    else:
-                        continue
-                    if problem:
-                        raise ValueError(f"'{name}': {problem}")
-            return data
 
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the network).")
     boxes = Out(ParamSequence, doc="x0 y0 x1 y1: square crop box, pixels (NaN where no face).")
@@ -233,12 +238,16 @@ class FaceLandmarks(Node):
     landmarks468 = Out(Landmarks2D, doc="(F, 468, 2) face-mesh points, pixels; confidence = presence.")
     landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence.")
     presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (0 where no box).")
+    iris = Out(Landmarks2D, doc="(F, 10, 2) iris points, pixels: the subject's right eye's 5 (centre, then 4 on "
+               "the rim), then the left eye's (MediaPipe's iris model in eye crops from the face-mesh points); "
+               "confidence = presence.")
 
     def run(self, images: ImageSequence, boxes: ParamSequence, rolls: ParamSequence | None = None,
             heatmap_model: TorchModel | None = None) -> dict[str, object]:
         import torch
 
         from .heatmap import HeatmapLandmarks
+        from .iris import iris_landmarks, load_iris_network
         from .network import face_landmarks, load_face_mesh, upright_face_landmarks
 
         p = self.params
@@ -250,6 +259,7 @@ class FaceLandmarks(Node):
         pixels = network_images(images)
         frames = len(pixels)
         mesh = load_face_mesh(self.device)
+        iris_net = load_iris_network(self.device)
         heatmap = None
         if heatmap_model is not None:
             heatmap = HeatmapLandmarks(heatmap_model.build(self.device).eval(), p.heatmap_input_size, beta=p.beta)
@@ -257,6 +267,7 @@ class FaceLandmarks(Node):
         pts68 = np.full((frames, 68, 2), np.nan, np.float32)
         presence = np.zeros(frames, np.float32)
         presence68 = np.zeros(frames, np.float32)
+        iris = np.full((frames, 10, 2), np.nan, np.float32)
         valid = np.flatnonzero(np.isfinite(boxes.values).all(1) & (boxes.values[:, 2] > boxes.values[:, 0]) &
                                (boxes.values[:, 3] > boxes.values[:, 1]))
         with torch.no_grad():
@@ -267,6 +278,7 @@ class FaceLandmarks(Node):
                 points, pres, roll = upright_face_landmarks(batch, box, mesh, first_roll[sel], p.roll_passes)
                 pts468[sel] = points.cpu().numpy()
                 presence[sel] = pres.cpu().numpy()
+                iris[sel] = iris_landmarks(batch, pts468[sel], iris_net).reshape(len(sel), 10, 2)
                 if heatmap is not None:  # in the face mesh's upright crop
                     points68, pres68 = face_landmarks(batch, box, heatmap, roll)
                     if points68.shape[1] != 68:
@@ -279,7 +291,77 @@ class FaceLandmarks(Node):
             presence68 = presence
         return {"landmarks468": Landmarks2D(pts468, np.repeat(presence[:, None], 468, 1)),
                 "landmarks68": Landmarks2D(pts68, np.repeat(presence68[:, None], 68, 1)),
-                "presence": ParamSequence(presence[:, None], ["presence"])}
+                "presence": ParamSequence(presence[:, None], ["presence"]),
+                "iris": Landmarks2D(iris, np.repeat(presence[:, None], 10, 1))}
+
+
+class TrackFaces(Node):
+    """Follow one face through a video by its own landmarks: 468 / 68 points, iris, presence; the
+    detector runs only when the face is lost (MediaPipe's Face Landmarker front end).
+
+    After a detection, each frame's face-mesh crop comes from the previous frames' points
+    (`nodes.landmarks.face_tracker`), so the crop moves, zooms and rolls with the face at the
+    cost of one face-mesh read; the detector (the image pyramid of `landmarks.DetectFaces`) runs
+    again where the presence drops below `min_presence`. Sequence node: each frame's crop comes
+    from the frame before.
+    """
+
+    type_name = "landmarks.TrackFaces"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(_FaceParams):
+        min_presence: float = Param(0.5, ge=0, le=1, description="Least face-mesh presence of a face read: "
+                                    "below it the followed face is lost (the detector runs), and a detection "
+                                    "the face mesh does not confirm is not taken (MediaPipe's tracking "
+                                    "confidence, 0.5).")
+        refind_frames: int = Param(30, ge=0, description="Frames (1 s at 30 fps) during which a lost face is "
+                                   "looked for only where it was last seen (so another face in view is not "
+                                   "taken for it); after them the choice `face` is made afresh.")
+        reread: float = Param(0.05, ge=0, description="Crop movement (the larger of the centre's shift in crop "
+                              "sides, |log| of the side ratio and the roll change in radians) above which a "
+                              "frame is read again in the crop of its own points: an off-centre face is read "
+                              "less well; 0.05 re-read 1 of 30 frames of a face crossing a 1080p frame in 1 s.")
+        velocity: float = Param(1.0, ge=0, le=1, description="How far each crop is moved on by the face's "
+                                "motion over the last two frames (1 = constant velocity, 0 = where the last "
+                                "frame's points were): a crop that lags a moving face drifts off it.")
+        roll_passes: int = Param(3, ge=0, description="Face-mesh passes that re-turn a detection's crop by the "
+                                 "eye line of the points found (as `landmarks.FaceLandmarks`).")
+
+    images = In(ImageSequence, doc="RGB frames (converted to sRGB for the networks).")
+    boxes = Out(ParamSequence, doc="x0 y0 x1 y1: the square crop the points were read in, pixels (turned by "
+                "`rolls` about its centre; NaN where failed).")
+    rolls = Out(ParamSequence, doc="roll: the crop's turn, radians, clockwise on screen (NaN where failed).")
+    failed = Out(ParamSequence, doc="failed: 1 where no face was read, else 0.")
+    reasons = Out(ParamSequence, doc="reason: why a frame failed, as a code: "
+                  + "; ".join(f"{i} {r}" for i, r in enumerate(FAILURE_REASONS) if i) + " (0: not failed).")
+    landmarks468 = Out(Landmarks2D, doc="(F, 468, 2) face-mesh points, pixels (NaN where failed); "
+                       "confidence = presence.")
+    landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence.")
+    presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (of the best detection tried where "
+                   "failed; 0 where none).")
+    iris = Out(Landmarks2D, doc="(F, 10, 2) iris points, pixels (as `landmarks.FaceLandmarks`).")
+
+    def run(self, images: ImageSequence) -> dict[str, object]:
+        from .face_tracker import track_faces
+
+        p = self.params
+        out = track_faces(network_images(images), device=self.device, face=p.face, min_score=p.min_score,
+                          iou=p.iou, min_face_px=p.min_face_px, pyramid_min_score=p.pyramid_min_score,
+                          box_scale=p.box_scale, min_presence=p.min_presence, refind_frames=p.refind_frames,
+                          reread=p.reread, velocity=p.velocity, roll_passes=p.roll_passes, progress=self.progress)
+        ok = (~out.failed).astype(np.float32)
+        confidence = (out.presence * ok).astype(np.float32)[:, None]
+        points = out.points.astype(np.float32)
+        return {"boxes": ParamSequence(out.boxes.astype(np.float32), list(BOX_NAMES)),
+                "rolls": ParamSequence(out.rolls.astype(np.float32)[:, None], ["roll"]),
+                "failed": ParamSequence(out.failed.astype(np.float32)[:, None], ["failed"]),
+                "reasons": ParamSequence(out.reasons.astype(np.float32)[:, None], ["reason"]),
+                "landmarks468": Landmarks2D(points, np.repeat(confidence, 468, 1)),
+                "landmarks68": Landmarks2D(points[:, MEDIAPIPE_TO_68], np.repeat(confidence, 68, 1)),
+                "presence": ParamSequence(out.presence.astype(np.float32)[:, None], ["presence"]),
+                "iris": Landmarks2D(out.iris.reshape(-1, 10, 2).astype(np.float32), np.repeat(confidence, 10, 1))}
 
 
 class SaveLandmarks(Node):
@@ -303,14 +385,24 @@ class SaveLandmarks(Node):
     landmarks468 = In(Landmarks2D, doc="(F, 468, 2) pixels.")
     presence = In(ParamSequence, doc="presence per frame.")
     failed = In(ParamSequence, doc="failed: 1 where no face was found.")
+    iris = In(Landmarks2D, optional=True, doc="(F, 10, 2) iris points, pixels (landmarks.FaceLandmarks or "
+              "landmarks.TrackFaces): saved as iris [F, 2, 5, 2] with the per-eye gaze [F, 2, 2].")
+    reasons = In(ParamSequence, optional=True, doc="reason: why each frame failed, a code (landmarks.TrackFaces): "
+                 "saved as failed_reason [F] with the texts failure_reasons.")
     files = Out(Files, doc="The NPZ written and its sha256.")
 
     def run(self, boxes: ParamSequence, landmarks68: Landmarks2D, landmarks468: Landmarks2D,
-            presence: ParamSequence, failed: ParamSequence) -> dict[str, Files]:
+            presence: ParamSequence, failed: ParamSequence, iris: Landmarks2D | None = None,
+            reasons: ParamSequence | None = None) -> dict[str, Files]:
         path = self.params.path
-        for port, value, shape in (("boxes", boxes.values, (4,)), ("landmarks68", landmarks68.points, (68, 2)),
-                                   ("landmarks468", landmarks468.points, (468, 2)),
-                                   ("presence", presence.values, (1,)), ("failed", failed.values, (1,))):
+        checks = [("boxes", boxes.values, (4,)), ("landmarks68", landmarks68.points, (68, 2)),
+                  ("landmarks468", landmarks468.points, (468, 2)), ("presence", presence.values, (1,)),
+                  ("failed", failed.values, (1,))]
+        if iris is not None:
+            checks.append(("iris", iris.points, (10, 2)))
+        if reasons is not None:
+            checks.append(("reasons", reasons.values, (1,)))
+        for port, value, shape in checks:
             if tuple(value.shape[1:]) != shape:
                 raise InputError(port, f"expected shape (F, {', '.join(map(str, shape))}), found {value.shape}")
         arrays = {"boxes": boxes.values.astype(np.float32),
@@ -319,6 +411,14 @@ class SaveLandmarks(Node):
                   "presence": presence.values[:, 0].astype(np.float32),
                   "failed": failed.values[:, 0] > 0.5,
                   "frames": np.arange(self.frames.start, self.frames.stop, dtype=np.int64)}
+        if iris is not None:
+            from .tracking import eye_gaze
+
+            arrays["iris"] = iris.points.reshape(-1, 2, 5, 2).astype(np.float32)
+            arrays["gaze"] = eye_gaze(landmarks468.points, arrays["iris"]).astype(np.float32)
+        if reasons is not None:
+            arrays["failed_reason"] = np.nan_to_num(reasons.values[:, 0]).astype(np.int64)
+            arrays["failure_reasons"] = np.array(FAILURE_REASONS)
         write_npz_atomic(path, arrays)
         return {"files": files_value([path])}
 

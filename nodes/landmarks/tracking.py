@@ -25,12 +25,21 @@ from typing import Sequence, Union
 
 import numpy as np
 
-__all__ = ["FACE_CHOICES", "FaceChoice", "box_iou", "choose_face", "follow_faces"]
+__all__ = ["FACE_CHOICES", "FAILURE_REASONS", "FaceChoice", "box_iou", "choose_face", "follow_faces", "refind_face", "landmark_crop", "EYE_CORNERS",
+           "eye_gaze"]
 
 FACE_CHOICES = ("largest", "centre", "score")
 """The named choices of `choose_face`."""
 
 FaceChoice = Union[str, int, Sequence[float]]
+
+EYE_CORNERS = np.array([[33, 133], [362, 263]], np.int64)
+"""(2, 2) face-mesh indices of each eye's corners, ordered along the image's x axis of a frontal
+face (eye 0, the subject's right: outer then inner corner; eye 1: inner then outer)."""
+
+FAILURE_REASONS = ("", "no face found", "face presence below min_presence",
+                   "the followed face is lost; other faces are in view")
+"""Why a frame failed, by code (`nodes.landmarks.face_tracker.track_faces`; 0: it did not)."""
 
 
 def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
@@ -131,3 +140,86 @@ def follow_faces(boxes: Sequence[np.ndarray], scores: Sequence[np.ndarray], choi
             out[f] = best if overlap[best] >= min_iou else -1
         previous = frame_boxes[out[f]] if out[f] >= 0 else None
     return out
+
+
+def refind_face(boxes: np.ndarray, last_box: np.ndarray, *, max_shift: float = 1.0, max_zoom: float = 2.0) -> int:
+    """The detection that is the face last seen in `last_box` (after an occlusion), or -1.
+
+    A detection qualifies when its box centre lies within `max_shift` sides (of `last_box`) of
+    the last box's centre and its side differs by at most a factor `max_zoom`; of those, the
+    nearest is taken.
+
+    Args:
+        boxes: (N, 4) face boxes of this frame, pixels.
+        last_box: (4,) the followed face's box when it was last seen, pixels.
+    Returns:
+        an index into `boxes`, or -1.
+
+    Example:
+        >>> refind_face(np.array([[300, 0, 400, 100], [20, 5, 120, 105.]]), np.array([0, 0, 100, 100.]))
+        1
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    last = np.asarray(last_box, np.float64)
+    if not len(boxes):
+        return -1
+    side = np.sqrt(np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 1e-12, None), -1))
+    last_side = float(np.sqrt(np.prod(np.clip(last[2:] - last[:2], 1e-12, None))))
+    shift = np.linalg.norm((boxes[:, :2] + boxes[:, 2:]) / 2 - (last[:2] + last[2:]) / 2, axis=-1) / last_side
+    ok = (shift <= max_shift) & (side <= max_zoom * last_side) & (side >= last_side / max_zoom)
+    return int(np.argmin(np.where(ok, shift, np.inf))) if ok.any() else -1
+
+
+def landmark_crop(points: np.ndarray, roll: float, scale: float = 1.5) -> np.ndarray:
+    """The square crop box of a face from its landmarks (MediaPipe's tracking crop).
+
+    The points' extent is measured in the face's own axes (turned by `roll`); the crop is
+    centred on that extent's centre, of side `scale` times its longer side (MediaPipe's
+    `FaceLandmarkLandmarksToRoi`: 1.5).
+
+    Args:
+        points: (N, 2) landmarks, pixels (all finite).
+        roll: the face's roll, radians, clockwise on screen (e.g. the eye line's angle).
+        scale: crop side over the extent's longer side.
+    Returns:
+        (4,) x0 y0 x1 y1, pixels: the crop before it is turned by `roll` about its centre.
+
+    Example:
+        >>> landmark_crop(np.array([[0, 0], [10, 0], [10, 20], [0, 20.]]), 0.0).tolist()
+        [-10.0, -5.0, 20.0, 25.0]
+    """
+    p = np.asarray(points, np.float64)
+    c, s = np.cos(roll), np.sin(roll)
+    along = p @ np.array([c, s])  # coordinates in the face's axes
+    across = p @ np.array([-s, c])
+    lo, hi = np.array([along.min(), across.min()]), np.array([along.max(), across.max()])
+    mid = (lo + hi) / 2
+    centre = np.array([c * mid[0] - s * mid[1], s * mid[0] + c * mid[1]])
+    half = scale * float((hi - lo).max()) / 2
+    return np.concatenate([centre - half, centre + half])
+
+
+def eye_gaze(points468: np.ndarray, iris: np.ndarray) -> np.ndarray:
+    """Where each iris sits between its eye's corners: a per-eye gaze measure.
+
+    The iris centre's offset from the midpoint of the eye's corners (`EYE_CORNERS`), in corner
+    distances, in the eye's own frame: x along the corner line (towards the image's right in a
+    frontal face: the subject looking to their left gives x > 0 in both eyes), y across it
+    (down). About 0 looking ahead; 0.5 would put the iris centre on a corner. Unlike an angle
+    it needs no eyeball model; it does not change when the head moves in the image plane
+    (shift, roll, zoom), and mirroring the image swaps the eyes and negates x.
+
+    Args:
+        points468: (..., 468, 2) face-mesh points, pixels.
+        iris: (..., 2, 5, 2) `iris_landmarks`, pixels.
+    Returns:
+        (..., 2, 2) per eye (0 right, 1 left): x, y; NaN where the inputs are.
+    """
+    p = np.asarray(points468, np.float64)
+    a, b = p[..., EYE_CORNERS[:, 0], :], p[..., EYE_CORNERS[:, 1], :]  # (..., 2, 2)
+    axis = b - a
+    length2 = np.maximum((axis ** 2).sum(-1, keepdims=True), 1e-12)
+    d = np.asarray(iris, np.float64)[..., 0, :] - (a + b) / 2
+    along = (d * axis).sum(-1, keepdims=True) / length2
+    across = (d[..., 1:] * axis[..., :1] - d[..., :1] * axis[..., 1:]) / length2
+    return np.concatenate([along, across], -1)

@@ -13,13 +13,14 @@ Used by `test_hard_cases.py` and `bench/detect_faces.py`.
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["Case", "photo", "reference", "make_case", "CASES", "eye_distance", "error_percent"]
+__all__ = ["Case", "VideoCase", "photo", "reference", "make_case", "video_path", "make_video", "CASES", "eye_distance",
+           "error_percent"]
 
 
 class Case(NamedTuple):
@@ -165,3 +166,49 @@ CASES = {
                                                    second=0.7, darken=0.4),
 }
 """Name -> `make_case` arguments (with `name` the photo)."""
+
+
+class VideoCase(NamedTuple):
+    """A video with known faces: `frames` (F, H, W, 3) float32 sRGB in [0, 1]; `points` (F, 468,
+    2) the reference points of the followed face, pixels (NaN on blank frames); `eye` (F,) its
+    eye distance, pixels; `others` (F, 4) the face box of the pasted second copy (NaN where none)."""
+
+    frames: np.ndarray
+    points: np.ndarray
+    eye: np.ndarray
+    others: np.ndarray
+
+
+def video_path(count: int, *, eye_px: tuple[float, float] = (45.0, 70.0), roll_deg: float = 20.0,
+               sweep: tuple[float, float] = (0.3, 0.6)) -> list[dict]:
+    """`make_case` arguments of a smooth move: the face crosses the frame left to right over `sweep`
+    (fractions of the width) with a slow vertical bob, zooms between the two eye distances and
+    rolls by up to +-`roll_deg` degrees (a half sine each, at different rates, so all three
+    change at once)."""
+    t = np.linspace(0.0, 1.0, count)
+    return [dict(eye_px=float(eye_px[0] + (eye_px[1] - eye_px[0]) * np.sin(np.pi * s) ** 2),
+                 angle_deg=float(roll_deg * np.sin(2 * np.pi * s)),
+                 at=(float(sweep[0] + (sweep[1] - sweep[0]) * s), float(0.5 + 0.05 * np.sin(3 * np.pi * s))))
+            for s in t]
+
+
+def make_video(name: str = "astronaut", count: int = 30, *, canvas: tuple[int, int] = (1080, 1920),
+               blank: tuple[int, ...] = (), second: float | Sequence[float] = 0.0, **path) -> VideoCase:
+    """A video of `count` frames along `video_path(count, **path)`; `blank` frames are plain grey
+    (an occlusion); `second` > 0 pastes a copy of that relative size beside the face (as
+    `make_case`), which then moves with it (one size, or one per frame)."""
+    frames, points, eyes, others = [], [], [], []
+    seconds = np.broadcast_to(np.asarray(second, np.float64), (count,))
+    for f, kw in enumerate(video_path(count, **path)):
+        if f in blank:
+            frames.append(np.full(canvas + (3,), 0.35, np.float32))
+            points.append(np.full((468, 2), np.nan))
+            eyes.append(np.nan)
+            others.append(np.full(4, np.nan))
+            continue
+        c = make_case(name, canvas=canvas, second=float(seconds[f]), **kw)
+        frames.append(c.image)
+        points.append(c.points)
+        eyes.append(c.eye)
+        others.append(c.others[0] if len(c.others) else np.full(4, np.nan))
+    return VideoCase(np.stack(frames), np.stack(points), np.array(eyes), np.stack(others))

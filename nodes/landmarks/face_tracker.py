@@ -1,0 +1,209 @@
+"""Follow one face through a video by its own landmarks, detecting only when it is lost.
+
+MediaPipe's Face Landmarker front end: after a detection, each frame's face-mesh crop comes
+from the previous frame's 468 points (`nodes.landmarks.tracking.landmark_crop`: their extent in
+the face's axes, times 1.5, turned by their eye line), so the crop moves, zooms and rolls with
+the face and the detector does not run. The detector (BlazeFace over the image pyramid,
+`nodes.landmarks.network.detect_all_faces`) runs again only on a frame where
+
+- the face mesh's presence in the tracked crop drops below `min_presence` (an occlusion, a
+  cut, a face turned away), or
+- nothing is being followed yet (the first frames, or after a loss).
+
+When the face moved so much that the crop made from this frame's points differs from the crop
+read by more than `reread` (the larger of the centre's shift in crop sides, the side's change
+as |log ratio| and the roll's change in radians), the frame is read again in the new crop: an
+off-centre face is read less well.
+
+Which face: the `face` choice (`nodes.landmarks.tracking.choose_face`) on the first frame that
+finds one. While a followed face is lost, only a detection where it was last seen
+(`refind_face`) continues it, for `refind_frames` frames; after that the choice is made afresh.
+A face the mesh does not confirm (presence below `min_presence` after a detection) fails the
+frame: no confident wrong face.
+
+Frames are (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded; pixels as in
+`nodes.landmarks.network`. This module imports torch at the top: import it from node `run()`
+methods only.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+
+from .iris import iris_landmarks, load_iris_network
+from .network import (PYRAMID_MIN_SCORE, detect_all_faces, eye_roll, face_landmarks, load_face_detector,
+                      load_face_mesh, points_roll, square_box, upright_face_landmarks)
+from .tracking import FAILURE_REASONS, FaceChoice, choose_face, landmark_crop, refind_face
+
+__all__ = ["FAILURE_REASONS", "TrackedFaces", "track_faces", "crop_movement", "predict_crop"]
+
+
+
+class TrackedFaces(NamedTuple):
+    """The followed face in each of F frames: `boxes` (F, 4) the square crop the points were read
+    in (x0 y0 x1 y1, pixels, before its turn; NaN where failed), `rolls` (F,) that crop's turn,
+    radians clockwise on screen (NaN where failed), `points` (F, 468, 2) face-mesh points, pixels
+    (NaN where failed), `presence` (F,) the face mesh's presence in [0, 1] (0 where no face was
+    read), `failed` (F,) bool, `reasons` (F,) int64 index into `FAILURE_REASONS`, `detected` (F,)
+    bool: the detector ran on the frame, `iris` (F, 2, 5, 2) iris points, pixels
+    (`nodes.landmarks.iris.iris_landmarks`; NaN where failed), `rereads` (F,) int64: face-mesh
+    reads after the first in a followed frame."""
+
+    boxes: np.ndarray
+    rolls: np.ndarray
+    points: np.ndarray
+    presence: np.ndarray
+    failed: np.ndarray
+    reasons: np.ndarray
+    detected: np.ndarray
+    iris: np.ndarray
+    rereads: np.ndarray
+
+
+def crop_movement(box: np.ndarray, roll: float, new_box: np.ndarray, new_roll: float) -> float:
+    """How far a crop moved: the largest of the centre's shift in sides of `box`, |log| of the
+    side ratio and the roll's change in radians (wrapped to [-pi, pi])."""
+    side, new_side = box[2] - box[0], new_box[2] - new_box[0]
+    shift = np.linalg.norm((new_box[:2] + new_box[2:]) / 2 - (box[:2] + box[2:]) / 2) / side
+    turn = abs((new_roll - roll + np.pi) % (2 * np.pi) - np.pi)
+    return float(max(shift, abs(np.log(new_side / side)), turn))
+
+
+def predict_crop(before: tuple[np.ndarray, float], latest: tuple[np.ndarray, float],
+                 velocity: float = 1.0) -> tuple[np.ndarray, float]:
+    """The next frame's crop, moved on from `latest` by `velocity` times the step from `before`.
+
+    Args:
+        before, latest: (box (4,) square x0 y0 x1 y1 pixels, roll radians) of two consecutive frames.
+        velocity: 0 = `latest` as is, 1 = constant velocity (centre, log side and roll).
+    Returns:
+        (box (4,), roll).
+
+    Example:
+        >>> box, roll = predict_crop((np.array([0, 0, 10, 10.]), 0.0), (np.array([2, 0, 12, 10.]), 0.1))
+        >>> box.tolist(), round(roll, 3)
+        ([4.0, 0.0, 14.0, 10.0], 0.2)
+    """
+    (b0, r0), (b1, r1) = before, latest
+    c0, c1 = (b0[:2] + b0[2:]) / 2, (b1[:2] + b1[2:]) / 2
+    s0, s1 = b0[2] - b0[0], b1[2] - b1[0]
+    centre = c1 + velocity * (c1 - c0)
+    half = s1 * (s1 / s0) ** velocity / 2
+    turn = (r1 - r0 + np.pi) % (2 * np.pi) - np.pi
+    return np.concatenate([centre - half, centre + half]), float(r1 + velocity * turn)
+
+
+def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "largest", min_score: float = 0.5,
+                iou: float = 0.3, min_face_px: float = 40.0, pyramid_min_score: float = PYRAMID_MIN_SCORE,
+                box_scale: float = 1.5, crop_scale: float = 1.5, min_presence: float = 0.5,
+                refind_frames: int = 30, reread: float = 0.05, max_rereads: int = 2,
+                velocity: float = 1.0, max_candidates: int = 3, roll_passes: int = 3, with_iris: bool = True,
+                progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
+    """Follow the chosen face through `frames` (see the module docstring).
+
+    Args:
+        frames: (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded (numpy; each frame is read in place).
+        device: torch device of the networks.
+        face: which face (`choose_face`).
+        min_score, iou, min_face_px, pyramid_min_score: the detector's (`detect_all_faces`).
+        box_scale: crop side over the detector box's longer side (MediaPipe: 1.5).
+        crop_scale: crop side over the landmarks' extent (MediaPipe: 1.5).
+        min_presence: least face-mesh presence that keeps following (MediaPipe: 0.5).
+        refind_frames: frames during which a lost face is looked for only where it was last seen.
+        reread: crop movement (`crop_movement`) above which a frame is read again in the new crop.
+        max_rereads: most re-reads per frame.
+        velocity: how far the crop is moved on by the last frames' motion (`predict_crop`).
+        max_candidates: detections tried, in the order of the choice, until the face mesh confirms one.
+        roll_passes: face-mesh passes that re-turn a detection's crop (`upright_face_landmarks`).
+        with_iris: run the iris network (`iris` stays NaN without).
+        progress: called with (fraction done, message).
+    Returns:
+        TrackedFaces.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3:
+        raise ValueError(f"frames: expected shape (F, H, W, 3), found {frames.shape}")
+    count, height, width = frames.shape[:3]
+    detector, mesh = load_face_detector(device), load_face_mesh(device)
+    iris_net = load_iris_network(device) if with_iris else None
+    out = TrackedFaces(np.full((count, 4), np.nan), np.full(count, np.nan), np.full((count, 468, 2), np.nan),
+                       np.zeros(count), np.ones(count, bool), np.zeros(count, np.int64), np.zeros(count, bool),
+                       np.full((count, 2, 5, 2), np.nan), np.zeros(count, np.int64))
+    crop, crop_roll = None, 0.0  # the next frame's crop (None: detect)
+    latest, before = None, None  # the landmark crops (box, roll) of the last two frames read (None: none)
+    last_box, lost_for = None, 0  # the followed face's detector-sized box when last seen
+
+    def read(image: torch.Tensor, box: np.ndarray, roll: float) -> tuple[np.ndarray, float]:
+        points, presence = face_landmarks(image, box[None], mesh, np.array([roll]))
+        return points[0].double().cpu().numpy(), float(presence[0])
+
+    with torch.no_grad():
+        for f in range(count):
+            image = torch.as_tensor(frames[f:f + 1], device=device)
+            points = None
+            if crop is not None:  # follow: read in the crop predicted from the previous frames' points
+                if before is not None:
+                    crop, crop_roll = predict_crop(before, (crop, crop_roll), velocity)
+                points, presence = read(image, crop, crop_roll)
+                for _ in range(max_rereads):  # the face moved in the crop: read it again centred
+                    if presence < min_presence:
+                        break
+                    roll = float(points_roll(points))
+                    new_crop = landmark_crop(points, roll, crop_scale)
+                    if crop_movement(crop, crop_roll, new_crop, roll) <= reread:
+                        break
+                    crop, crop_roll = new_crop, roll
+                    points, presence = read(image, crop, crop_roll)
+                    out.rereads[f] += 1
+                if presence < min_presence:
+                    points, latest = None, None
+            if points is None:  # detect
+                out.detected[f] = True
+                faces = detect_all_faces(image, detector, min_score=min_score, iou=iou, min_face_px=min_face_px,
+                                         pyramid_min_score=pyramid_min_score)[0]
+                boxes, scores, keypoints = faces.boxes, faces.scores, faces.keypoints
+                refind = last_box is not None and lost_for < refind_frames
+                reason = 3 if refind and len(boxes) else 1
+                for _ in range(max_candidates):  # a detection the face mesh rejects: the next one chosen
+                    pick = (refind_face(boxes, last_box) if refind else
+                            choose_face(boxes, scores, face, (height, width)))
+                    if pick < 0:
+                        break
+                    box = square_box(boxes[pick], box_scale)
+                    pts, pres, turned = upright_face_landmarks(image, box[None], mesh,
+                                                               np.array([eye_roll(keypoints[pick])]), roll_passes)
+                    presence = max(float(pres[0]), out.presence[f])
+                    out.presence[f] = presence
+                    if float(pres[0]) >= min_presence:
+                        points, crop, crop_roll = pts[0].double().cpu().numpy(), box, float(turned[0])
+                        presence = float(pres[0])
+                        break
+                    reason = 2
+                    if not isinstance(face, str) and not refind:  # an index or a box names one detection
+                        break
+                    keep = np.arange(len(boxes)) != pick
+                    boxes, scores, keypoints = boxes[keep], scores[keep], keypoints[keep]
+                if points is None:
+                    out.reasons[f] = reason
+                    crop, latest, before, lost_for = None, None, None, lost_for + 1
+                    if last_box is not None and lost_for >= refind_frames:
+                        last_box = None  # give up on the lost face: the choice is made afresh
+                    if progress is not None:
+                        progress((f + 1) / count, "following the face")
+                    continue
+            out.boxes[f], out.rolls[f], out.points[f], out.presence[f] = crop, crop_roll, points, presence
+            out.failed[f] = False
+            if iris_net is not None:
+                out.iris[f] = iris_landmarks(image, points[None], iris_net)[0]
+            roll = float(points_roll(points))
+            before, latest = latest, (landmark_crop(points, roll, crop_scale), roll)
+            crop, crop_roll = latest
+            side = (crop[2] - crop[0]) / box_scale
+            centre = (crop[:2] + crop[2:]) / 2
+            last_box, lost_for = np.concatenate([centre - side / 2, centre + side / 2]), 0
+            if progress is not None:
+                progress((f + 1) / count, "following the face")
+    return out
