@@ -1,6 +1,14 @@
 """Secondary dynamics: the paper's Fig. 5 protocol, resynthesis residual, training time, throughput.
 
 Run: nice python bench/dynamics.py [--max-vertices 1500] [--epochs 20] [--rows 100000]
+     nice python bench/dynamics.py --throughput   # removal speed on the 9,409-vertex face only
+
+Removal throughput (`--throughput`, printed first in a full run): the bundled network on a
+600-frame capture of the whole 9,409-vertex face region at 120 fps: `dynamics.RemoveDynamics`
+on one 288-frame chunk (the graph's 256 frames + 16 frames of halo each side) with the
+propagation matrix cold (first chunk of a process) and warm (every later chunk), per output
+frame, and `graphs/dynamics_remove.json` end to end (NPZ in, NPZ out, the thread scheduler,
+no cache), with the torch threads given.
 
 Fig. 5 protocol (Zoss et al. 2020, section 5.3): the vibrating platform at 6, 7, 8, 9, 10 and
 11 Hz, held expressions; removal network F trained on the k slowest frequencies (k = 1..5) and
@@ -37,6 +45,48 @@ FREQUENCIES = [6, 7, 8, 9, 10, 11]
 HELD = ["neutral", "smile", "jaw_open", "pucker"]
 
 
+def throughput(threads: int) -> None:
+    """Print the removal speed on the 9,409-vertex face (see the module docstring)."""
+    import tempfile
+    from pathlib import Path
+
+    import torch
+
+    from nodegraph import runner
+    from nodes.dynamics.files import LoadModel
+
+    torch.set_num_threads(threads)
+    face = load_face_model(region="face")
+    test = simulate_dynamics(face, motions=["run"], expressions=["neutral"], segment_frames=600, fps=120.0,
+                             seed=11)
+    model = run_node(LoadModel, {})["model"]
+    chunk = test.capture.slice_frames(0, 288)
+    skull = test.skull.slice_frames(0, 288)
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        run_node(RemoveDynamics, {}, capture=chunk, skull=skull, model=model)
+        times.append(time.perf_counter() - start)
+    print(f"removal on {face.neutral.shape[0]} vertices, {threads} torch threads: one 288-frame chunk "
+          f"{times[0]:.2f} s cold (propagation matrix built), {min(times[1:]):.2f} s warm "
+          f"({256 / min(times[1:]):.0f} output frames/s)")
+    with tempfile.TemporaryDirectory() as folder:
+        capture, out = Path(folder) / "capture.npz", Path(folder) / "out.npz"
+        np.savez(capture, vertices=test.capture.vertices, faces=test.capture.faces, fps=120.0,
+                 rigid=test.skull.matrices)
+        start = time.perf_counter()
+        result = runner.run(Path(__file__).resolve().parents[1] / "graphs" / "dynamics_remove.json",
+                            cache=False, parameters={"capture": str(capture), "skull": str(capture),
+                                                     "model": "", "output": str(out)})
+        seconds = time.perf_counter() - start
+        assert result.exit_code == 0, result.summary()
+        with np.load(out) as saved:
+            after = rms_distance(saved["vertices"], test.quasistatic.vertices)
+    before = rms_distance(test.capture.vertices, test.quasistatic.vertices)
+    print(f"dynamics_remove.json, {test.capture.num_frames} frames: {seconds:.1f} s end to end "
+          f"({test.capture.num_frames / seconds:.0f} frames/s); RMS {10 * before:.3f} -> {10 * after:.3f} mm")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--max-vertices", type=int, default=1500, help="face region subsample (0 = all 9,409)")
@@ -45,7 +95,13 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=100000)
     parser.add_argument("--segment-frames", type=int, default=128)
     parser.add_argument("--synthesis-epochs", type=int, default=30)
+    parser.add_argument("--throughput", action="store_true", help="only the removal speed on the whole face")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads for the throughput")
     args = parser.parse_args()
+    throughput(args.threads)
+    if args.throughput:
+        return
+    print()
     face = load_face_model(region="face", max_vertices=args.max_vertices)
     v = face.neutral.shape[0]
     print(f"face region: {v} vertices; {args.samples} samples; F: {args.rows} rows x {args.epochs} "

@@ -28,14 +28,13 @@ import numpy as np
 from nodegraph import (SEQUENCE, FaceModel, In, InputError, JsonValue, MeshSequence, Node, NodeParams,
                        Out, Param, ParamSequence, RigidSequence, TorchModel, windowed)
 
-from ..geometry.mesh import vertex_neighbours
 from ..mesh.regions import select_region
 from .features import (dynamic_offsets, moving_average_target, rotate_elementwise,
                        segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
                        skull_descriptor, skull_landmarks, stabilize_points, window_gather,
                        window_reach)
 from .networks import predict, single_thread, standardize_stats, train_mlp
-from .propagate import cached_interpolation_matrix, propagate_offsets
+from .propagate import cached_edges, cached_interpolation_matrix, propagate_offsets
 
 __all__ = ["HALO", "region_vertices", "topology_problem", "check_model", "locate_region", "model_edges",
            "TrainRemoval", "RemoveDynamics"]
@@ -114,8 +113,7 @@ def check_model(model: TorchModel, kind: str, mesh: MeshSequence, fps: float, po
 
 def model_edges(mesh: MeshSequence, model: TorchModel) -> np.ndarray:
     """Neighbour edges for propagation: the mesh's, else a kNN graph of the training rest shape."""
-    rest = model.normalization["rest_vertices"]
-    return vertex_neighbours(rest, mesh.faces)
+    return cached_edges(model.normalization["rest_vertices"], mesh.faces)
 
 
 def locate_region(part: FaceModel, whole: FaceModel, tol_cm: float = 1e-4) -> np.ndarray:
