@@ -31,6 +31,9 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import project_points_torch
+from ..geometry.rotation import axis_angle_to_rotmat_torch as axis_angle_to_rotmat  # the fit's name
+from ..geometry.rotation import rotmat_to_axis_angle
+from ..geometry.rotation import skew_torch as _skew
 
 __all__ = ["CROP_UNITS_PX", "EDGES_68", "landmark_weights", "axis_angle_to_rotmat", "rotmat_to_axis_angle",
            "posed_anchor_points", "project_views", "landmark_energy"]
@@ -85,42 +88,6 @@ def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0, 
     elif set_name != "all":
         raise ValueError(f"set_name: expected 'non_jaw', 'jaw' or 'all', found {set_name!r}")
     return w
-
-
-def _skew(v: Tensor) -> Tensor:
-    zero = torch.zeros_like(v[..., 0])
-    x, y, z = v.unbind(-1)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*v.shape[:-1], 3, 3)
-
-
-def axis_angle_to_rotmat(omega: Tensor) -> Tensor:
-    """Rodrigues' formula, differentiable everywhere (Taylor series near 0).
-
-    Args:
-        omega: (..., 3) axis times angle, radians.
-    Returns:
-        (..., 3, 3) rotation matrices (act on column vectors).
-
-    Example:
-        >>> axis_angle_to_rotmat(torch.tensor([0.0, 0.0, 3.14159265 / 2]))[0, 1].item() < -0.99
-        True
-    """
-    theta2 = (omega * omega).sum(-1)[..., None, None]
-    small = theta2 < 1e-8
-    theta = theta2.clamp_min(1e-8).sqrt()
-    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp_min(1e-8))
-    k = _skew(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(k)
-    return eye + a * k + b * (k @ k)
-
-
-def rotmat_to_axis_angle(rot: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations -> (..., 3) axis-angle, radians (numpy, via scipy)."""
-    from scipy.spatial.transform import Rotation
-
-    rot = np.asarray(rot, np.float64)
-    return Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_rotvec().reshape(*rot.shape[:-2], 3)
 
 
 def posed_anchor_points(neutral: Tensor, deltas: Tensor, weights: Tensor, rot: Tensor, trans: Tensor) -> Tensor:

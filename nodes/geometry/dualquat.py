@@ -9,6 +9,9 @@ Conventions:
     - Matrices act on column vectors; a 4x4 rigid matrix is `[[R, t], [0, 1]]`.
     - Translations are in the caller's length unit (cm in this project).
 
+`quat_to_rotmat` and `rotmat_to_quat` are `nodes.geometry.rotation`'s torch conversions,
+re-exported here under the names this module's users know.
+
 Every function is differentiable and works for any leading batch shape (including `()`).
 Dual-quaternion linear blending (DLB) follows Kavan et al., "Geometric skinning with
 approximate dual quaternion blending", ACM TOG 2008.
@@ -18,6 +21,9 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+
+from .rotation import quat_to_rotmat_torch as quat_to_rotmat  # the conversions live in rotation
+from .rotation import rotmat_to_quat_torch as rotmat_to_quat
 
 __all__ = [
     "quat_multiply", "quat_conjugate", "quat_to_rotmat", "rotmat_to_quat",
@@ -70,65 +76,6 @@ def quat_conjugate(q: Tensor) -> Tensor:
     """
     _check_last(q, 4, "q")
     return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
-
-
-def quat_to_rotmat(q: Tensor) -> Tensor:
-    """Return the rotation matrix of a quaternion (normalised first).
-
-    Args:
-        q: (..., 4) quaternion (w, x, y, z), any non-zero norm.
-    Returns:
-        (..., 3, 3) rotation matrix, det = +1, acting on column vectors.
-    """
-    _check_last(q, 4, "q")
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    rows = [
-        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-    ]
-    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
-
-
-def rotmat_to_quat(rot: Tensor) -> Tensor:
-    """Return the unit quaternion of a rotation matrix (Shepperd's method, w >= 0).
-
-    Args:
-        rot: (..., 3, 3) rotation matrix.
-    Returns:
-        (..., 4) unit quaternion (w, x, y, z) with w >= 0.
-
-    Note:
-        Each matrix uses the best-conditioned of the four candidate formulas (largest of
-        `trace`, `R00`, `R11`, `R22`), so the result is accurate for every angle, 180
-        degrees included.
-    """
-    if not isinstance(rot, Tensor) or rot.ndim < 2 or rot.shape[-2:] != (3, 3):
-        raise ValueError(f"rot: expected shape (..., 3, 3), found "
-                         f"{tuple(getattr(rot, 'shape', ()))}")
-    r = rot
-    r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
-    trace = r00 + r11 + r22
-    # The four candidates, each scaled by 4 * (its largest component).
-    cand = torch.stack([
-        torch.stack([1 + trace, r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0],
-                     r[..., 1, 0] - r[..., 0, 1]], -1),
-        torch.stack([r[..., 2, 1] - r[..., 1, 2], 1 + r00 - r11 - r22,
-                     r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0]], -1),
-        torch.stack([r[..., 0, 2] - r[..., 2, 0], r[..., 0, 1] + r[..., 1, 0],
-                     1 - r00 + r11 - r22, r[..., 1, 2] + r[..., 2, 1]], -1),
-        torch.stack([r[..., 1, 0] - r[..., 0, 1], r[..., 0, 2] + r[..., 2, 0],
-                     r[..., 1, 2] + r[..., 2, 1], 1 - r00 - r11 + r22], -1),
-    ], dim=-2)                                             # (..., 4 candidates, 4)
-    diag = torch.stack([trace, r00, r11, r22], dim=-1)
-    best = diag.argmax(dim=-1, keepdim=True)               # (..., 1)
-    q = torch.take_along_dim(cand, best[..., None].expand(*best.shape, 4), dim=-2)[..., 0, :]
-    q = q / q.norm(dim=-1, keepdim=True)
-    return torch.where(q[..., :1] < 0, -q, q)
 
 
 def dualquat_identity(*shape: int, dtype: torch.dtype = torch.float32,

@@ -38,6 +38,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ..geometry.rotation import euler_to_rotmat, rotmat_to_euler
+
 __all__ = ["LIVE_LINK_SHAPES", "ARKIT_NAMES", "LIVE_LINK_ANGLES", "LIVE_LINK_HEADER", "BLEND_SHAPE_COUNT",
            "SPLIT_SHAPES", "ANGLE_UNIT_RAD", "EYE_RANGE_RAD", "OPENCV_TO_ARKIT", "arkit_name", "to_arkit_weights",
            "from_arkit_weights", "shape_basis", "head_angles", "head_rotation", "eye_angles",
@@ -191,22 +193,14 @@ def head_angles(rotation: np.ndarray) -> np.ndarray:
 
     The inverse of `head_rotation` (`R = R_y(yaw) R_x(pitch) R_z(roll)`); pitch in [-pi/2, pi/2].
     """
-    from scipy.spatial.transform import Rotation
-
     rot = np.asarray(rotation, np.float64).reshape(-1, 3, 3)
-    if not len(rot):
-        return np.zeros((0, 3))
-    return Rotation.from_matrix(rot).as_euler("YXZ")
+    return rotmat_to_euler(rot, "YXZ")
 
 
 def head_rotation(angles: np.ndarray) -> np.ndarray:
     """(F, 3) yaw, pitch, roll radians -> (F, 3, 3) rotations `R_y(yaw) R_x(pitch) R_z(roll)`."""
-    from scipy.spatial.transform import Rotation
-
     angles = np.asarray(angles, np.float64).reshape(-1, 3)
-    if not len(angles):
-        return np.zeros((0, 3, 3))
-    return Rotation.from_euler("YXZ", angles).as_matrix()
+    return euler_to_rotmat(angles, "YXZ")
 
 
 def eye_angles(arkit: np.ndarray) -> np.ndarray:

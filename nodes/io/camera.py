@@ -58,10 +58,11 @@ import numpy as np
 from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param
 from nodegraph.types import CAMERA_RIG_SCHEMA, CAMERA_SCHEMA, CM_PER_UNIT, Camera, CameraRig
 
+from ..geometry.rotation import axis_angle_to_rotmat
 from ._files import atomic_path, files_value, format_of
 
 __all__ = [
-    "CAMERA_FORMATS", "rodrigues_to_rotmat", "parse_opencv_yaml", "camera_from_opencv",
+    "CAMERA_FORMATS", "parse_opencv_yaml", "camera_from_opencv",
     "camera_to_opencv_yaml", "load_camera", "save_camera", "load_camera_rig", "save_camera_rig",
     "rig_input_files", "LoadCamera", "SaveCamera", "LoadCameraRig", "SaveCameraRig",
 ]
@@ -86,35 +87,6 @@ _OPENCV_DT = {"u": np.uint8, "c": np.int8, "w": np.uint16, "s": np.int16, "i": n
 
 
 # -- pure functions -------------------------------------------------------------------------
-
-def rodrigues_to_rotmat(rvec: np.ndarray) -> np.ndarray:
-    """Convert a Rodrigues (axis-angle) vector to a rotation matrix, as `cv2.Rodrigues`.
-
-    Args:
-        rvec: (3,) float, rotation axis times angle, radians.
-    Returns:
-        (3, 3) float64 rotation, det +1: `R = I + sin(t) [k]x + (1 - cos(t)) [k]x^2` with
-        t = |rvec|, k = rvec / t.
-    Note:
-        Below t = 1e-12 the result is the identity plus the first-order term [rvec]x.
-
-    Example:
-        >>> rodrigues_to_rotmat(np.array([0.0, 0.0, np.pi / 2])).round(6).tolist()
-        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
-    """
-    rvec = np.asarray(rvec, np.float64).reshape(-1)
-    if rvec.shape != (3,):
-        raise ValueError(f"rvec: expected 3 values, found {rvec.size}")
-    theta = float(np.linalg.norm(rvec))
-
-    def skew(v: np.ndarray) -> np.ndarray:
-        return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-    if theta < 1e-12:
-        return np.eye(3) + skew(rvec)
-    k = skew(rvec / theta)
-    return np.eye(3) + np.sin(theta) * k + (1.0 - np.cos(theta)) * (k @ k)
-
 
 def _where(path: str) -> str:
     return f"file '{path}'"
@@ -371,8 +343,8 @@ def camera_from_opencv(data: dict[str, Any], path: str = "<data>", *, name: str 
         if rot_key:
             rotation = _matrix_3x3(_opencv_matrix(rot, path, rot_key), path, rot_key)
         else:
-            rotation = rodrigues_to_rotmat(_vector(_opencv_matrix(rvec, path, rvec_key), path,
-                                                   rvec_key, 3))
+            rotation = axis_angle_to_rotmat(_vector(_opencv_matrix(rvec, path, rvec_key), path,
+                                                    rvec_key, 3))  # OpenCV's Rodrigues vector
         extrinsics[:3, :3] = rotation
         extrinsics[:3, 3] = _vector(_opencv_matrix(trans, path, trans_key), path, trans_key, 3) \
             * _translation_cm(data, units, path)

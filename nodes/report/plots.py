@@ -7,7 +7,7 @@ median absolute deviation per vertex and coordinate, cm).
 
 Figures are drawn on `matplotlib.figure.Figure` objects (no pyplot state, safe in threads) and
 written atomically: a temporary name in the same folder, then `os.replace`.
-matplotlib and scipy are imported inside the functions that draw (not at import: `import nodes`
+matplotlib is imported inside the functions that draw (not at import: `import nodes`
 stays light).
 """
 
@@ -23,6 +23,7 @@ from nodegraph import SEQUENCE, Files, In, Index, InputError, MeshSequence, Node
 from nodegraph.files import atomic_path, files_value
 
 from ..geometry.rigid import stabilize_vertices
+from ..geometry.rotation import rotmat_to_euler
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -53,9 +54,7 @@ def rigid_to_euler_translation(matrices: np.ndarray) -> tuple[np.ndarray, np.nda
         raise ValueError(f"matrices: expected shape (F, 4, 4), found {matrices.shape}")
     if len(matrices) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    from scipy.spatial.transform import Rotation
-
-    angles = Rotation.from_matrix(matrices[:, :3, :3]).as_euler("xyz", degrees=True)
+    angles = np.rad2deg(rotmat_to_euler(matrices[:, :3, :3], "xyz"))
     return angles, matrices[:, :3, 3].copy()
 
 
@@ -269,7 +268,7 @@ class CaptureReport(Node):
     version = 2  # v2: histograms.png draws each skull frame in its own colour (were all black)
     kind = SEQUENCE
     writes_files = True
-    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")
+    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg")
 
     class Params(NodeParams):
         folder: str = Param("report", output_file=True, description="output folder (created if missing)")

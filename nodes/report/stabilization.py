@@ -62,7 +62,7 @@ class StabilizationReport(Node):
     port_renames = {1: {f"estimate_{i}": "estimates" for i in range(1, 5)}}
     kind = SEQUENCE
     writes_files = True
-    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")
+    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg")
 
     class Params(NodeParams):
         folder: str = Param("out/report", output_file=True, description="Output folder (created).")

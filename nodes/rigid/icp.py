@@ -18,9 +18,9 @@ from typing import Callable, Literal, NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from ..geometry.rigid import apply_rigid, rigid_matrix
+from ..geometry.rotation import axis_angle_to_rotmat, skew
 
 __all__ = ["IcpResult", "vertex_normals", "robust_weights", "robust_icp"]
 
@@ -92,15 +92,6 @@ def robust_weights(residuals: np.ndarray, scale: np.ndarray | float, loss: Loss)
     if loss == "l2":
         return np.ones_like(r)
     raise ValueError(f"loss: expected 'geman_mcclure', 'huber' or 'l2', found {loss!r}")
-
-
-def _skew(u: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices, `skew(u) @ v = u x v`."""
-    out = np.zeros(u.shape + (3,), u.dtype)
-    out[..., 0, 1], out[..., 0, 2] = -u[..., 2], u[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = u[..., 2], -u[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -u[..., 1], u[..., 0]
-    return out
 
 
 def robust_icp(points: np.ndarray, target: np.ndarray, target_normals: np.ndarray | None = None,
@@ -196,7 +187,7 @@ def robust_icp(points: np.ndarray, target: np.ndarray, target_normals: np.ndarra
             size = np.abs(resid)
         else:
             resid3 = moved - matched                                     # (A, N, 3)
-            jac = np.concatenate([-_skew(local), np.broadcast_to(np.eye(3), local.shape + (3,))],
+            jac = np.concatenate([-skew(local), np.broadcast_to(np.eye(3), local.shape + (3,))],
                                  -1)                                     # (A, N, 3, 6)
             size = np.linalg.norm(resid3, axis=-1)
         scale = np.maximum(robust_scale_cm, anneal * 1.4826 * np.median(size, axis=1))
@@ -211,7 +202,7 @@ def robust_icp(points: np.ndarray, target: np.ndarray, target_normals: np.ndarra
         damping = 1e-9 * np.trace(normal_mat, axis1=1, axis2=2) / 6.0 + 1e-300
         normal_mat = normal_mat + damping[:, None, None] * np.eye(6)
         step = np.linalg.solve(normal_mat, rhs[..., None])[..., 0]      # (A, 6)
-        rot = Rotation.from_rotvec(step[:, :3]).as_matrix()
+        rot = axis_angle_to_rotmat(step[:, :3])
         c = centre[:, 0]
         update = rigid_matrix(rot, c + step[:, 3:] - np.einsum("aij,aj->ai", rot, c))
         matrices[active] = update @ matrices[active]

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.rotation import euler_to_rotmat
+
 __all__ = ["MOTIONS", "euler_xyz_to_rotmat", "poses_to_matrices", "smooth_curves",
            "head_motion_curves", "default_pivot"]
 
@@ -19,7 +21,8 @@ MOTIONS = ("smooth", "nod", "turn", "walk", "none")
 
 
 def euler_xyz_to_rotmat(angles: np.ndarray) -> np.ndarray:
-    """Return R = Rz(c) Ry(b) Rx(a) for angles (a, b, c) (extrinsic XYZ, radians).
+    """Return R = Rz(c) Ry(b) Rx(a) for angles (a, b, c) (extrinsic XYZ, radians): the head
+    motion's convention of `nodes.geometry.rotation.euler_to_rotmat`.
 
     Args:
         angles: (..., 3) radians.
@@ -30,22 +33,7 @@ def euler_xyz_to_rotmat(angles: np.ndarray) -> np.ndarray:
         >>> np.round(euler_xyz_to_rotmat(np.array([0.0, 0.0, np.pi / 2])) @ [1, 0, 0], 6).tolist()
         [0.0, 1.0, 0.0]
     """
-    angles = np.asarray(angles, dtype=np.float64)
-    if angles.shape[-1:] != (3,):
-        raise ValueError(f"angles: expected shape (..., 3), found {angles.shape}")
-    ca, cb, cc = np.cos(angles[..., 0]), np.cos(angles[..., 1]), np.cos(angles[..., 2])
-    sa, sb, sc = np.sin(angles[..., 0]), np.sin(angles[..., 1]), np.sin(angles[..., 2])
-    rot = np.empty(angles.shape[:-1] + (3, 3))
-    rot[..., 0, 0] = cc * cb
-    rot[..., 0, 1] = cc * sb * sa - sc * ca
-    rot[..., 0, 2] = cc * sb * ca + sc * sa
-    rot[..., 1, 0] = sc * cb
-    rot[..., 1, 1] = sc * sb * sa + cc * ca
-    rot[..., 1, 2] = sc * sb * ca - cc * sa
-    rot[..., 2, 0] = -sb
-    rot[..., 2, 1] = cb * sa
-    rot[..., 2, 2] = cb * ca
-    return rot
+    return euler_to_rotmat(angles, "xyz")
 
 
 def poses_to_matrices(angles: np.ndarray, translations: np.ndarray, pivot: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import axis_angle_from_quat, quat_from_axis_angle
+from ..geometry.rotation import axis_angle_to_quat, quat_to_axis_angle
 
 __all__ = ["quaternion_mean", "average_params"]
 
@@ -66,7 +66,7 @@ def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray,
     out[:, others] = np.einsum("fn,fnd->fd", w, v[idx][:, :, others])
     rotation = np.asarray(rotation, np.int64)
     if len(rotation):
-        quats = quat_from_axis_angle(v[:, rotation])[idx]  # (F, 3, 4)
-        out[:, rotation] = axis_angle_from_quat(quaternion_mean(quats, w))
+        quats = axis_angle_to_quat(v[:, rotation])[idx]  # (F, 3, 4)
+        out[:, rotation] = quat_to_axis_angle(quaternion_mean(quats, w))
     out[~ok] = np.asarray(values, np.float64)[~ok]  # as given, NaN included
     return out

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..fit.energy import axis_angle_to_rotmat
+from ..geometry.rotation import axis_angle_to_rotmat_torch as axis_angle_to_rotmat
 from ..flow.geometric import Coverage, coverage, surface_flow
 
 __all__ = ["FlowModel", "Terms", "solve_frames", "frame_energies", "PRIOR_SCALES"]

@@ -23,9 +23,11 @@ import numpy as np
 from nodegraph import FaceModel, ParamSequence
 from nodegraph.performance import MATRIX_COLUMNS, TRANSLATION_COLUMNS
 
+from ..geometry.rotation import axis_angle_to_rotmat, axis_angle_to_rotmat_torch, rotmat_to_axis_angle
+
 __all__ = ["ROTATION_NAMES", "TRANSLATION_NAMES", "RIGID_NAMES", "MATRIX_NAMES", "FIT_TRANSLATION_NAMES", "Layout",
            "params_layout", "make_params", "to_unknowns", "from_unknowns",
-           "posed_vertices", "quat_from_axis_angle", "axis_angle_from_quat"]
+           "posed_vertices"]
 
 ROTATION_NAMES = ("rot_x", "rot_y", "rot_z")
 TRANSLATION_NAMES = ("trans_x", "trans_y", "trans_z")
@@ -83,8 +85,6 @@ def params_layout(names: list[str], shape_names: list[str], where: str = "params
 
 def to_unknowns(values: np.ndarray, layout: Layout) -> np.ndarray:
     """(F, D) sequence values -> (F, 6 + K) float64 [axis-angle rad, cm, weights] (NaN and missing -> 0)."""
-    from scipy.spatial.transform import Rotation
-
     v = np.nan_to_num(np.asarray(values, np.float64))
     f, k = len(v), len(layout.weights)
     x = np.zeros((f, 6 + k))
@@ -92,7 +92,7 @@ def to_unknowns(values: np.ndarray, layout: Layout) -> np.ndarray:
         rot = v[:, layout.rotation].reshape(f, 3, 3)
         ok = np.abs(np.linalg.det(rot) - 1.0) < 0.1 if f else np.zeros(0, bool)
         rot[~ok] = np.eye(3)
-        x[:, :3] = Rotation.from_matrix(rot).as_rotvec() if f else 0.0
+        x[:, :3] = rotmat_to_axis_angle(rot)
     else:
         x[:, :3] = v[:, layout.rotation]
     x[:, 3:6] = v[:, layout.translation]
@@ -103,12 +103,10 @@ def to_unknowns(values: np.ndarray, layout: Layout) -> np.ndarray:
 
 def from_unknowns(x: np.ndarray, values: np.ndarray, layout: Layout) -> np.ndarray:
     """Write (F, 6 + K) unknowns back into a copy of the (F, D) sequence values (float32)."""
-    from scipy.spatial.transform import Rotation
-
     out = np.array(values, np.float64)
     f = len(out)
     if layout.matrix:
-        out[:, layout.rotation] = Rotation.from_rotvec(x[:, :3]).as_matrix().reshape(f, 9) if f else 0.0
+        out[:, layout.rotation] = axis_angle_to_rotmat(x[:, :3]).reshape(f, 9)
     else:
         out[:, layout.rotation] = x[:, :3]
     out[:, layout.translation] = x[:, 3:6]
@@ -133,29 +131,7 @@ def posed_vertices(model_neutral: Any, model_deltas: Any, rotation: Any, transla
     Returns:
         (B, V, 3) world vertices, cm: `R(omega) (neutral + sum_k w_k d_k) + t`.
     """
-    from ..fit.energy import axis_angle_to_rotmat
-
     k, v = model_deltas.shape[:2]
     local = model_neutral.reshape(-1) + weights @ model_deltas.reshape(k, -1)
-    rot = axis_angle_to_rotmat(rotation)
+    rot = axis_angle_to_rotmat_torch(rotation)
     return local.reshape(-1, v, 3) @ rot.transpose(1, 2) + translation[:, None]
-
-
-def quat_from_axis_angle(omega: np.ndarray) -> np.ndarray:
-    """(..., 3) axis-angle rad -> (..., 4) unit quaternions (w, x, y, z), w >= 0."""
-    omega = np.asarray(omega, np.float64)
-    angle = np.linalg.norm(omega, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    scale = np.where(angle > 1e-12, np.sin(half) / np.maximum(angle, 1e-12), 0.5 - angle ** 2 / 48.0)
-    return np.concatenate([np.cos(half), omega * scale], -1)
-
-
-def axis_angle_from_quat(quat: np.ndarray) -> np.ndarray:
-    """(..., 4) quaternions (w, x, y, z), any norm or sign -> (..., 3) axis-angle rad, angle <= pi."""
-    q = np.asarray(quat, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    q = np.where(q[..., :1] < 0, -q, q)
-    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., :1])
-    factor = np.where(s > 1e-12, angle / np.maximum(s, 1e-12), 2.0)
-    return q[..., 1:] * factor

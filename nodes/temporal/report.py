@@ -6,7 +6,7 @@ difference of a curve (what temporal smoothing lowers); `temporal.MotionReport` 
 curves of every connected sequence (raw fit, averaged, hybrid, ...), with the truth when it is
 known, shades failed frames, and returns a table of roughness and error to the truth.
 
-matplotlib and scipy are imported inside the functions that need them.
+matplotlib is imported inside the functions that need it.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from nodegraph import (SEQUENCE, Camera, FaceModel, Files, In, InputError, Node,
                        RigidSequence, Table)
 from nodegraph.files import files_value
 
+from ..geometry.rotation import axis_angle_to_rotmat
 from ..report.plots import plot_rigid_curves, rigid_to_euler_translation
 from ..report.stabilization import write_table
 from .layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, ROTATION_NAMES, TRANSLATION_NAMES
@@ -41,8 +42,6 @@ def rigid_curves(params: ParamSequence, where: str = "series") -> tuple[np.ndarr
     Raises:
         InputError: the rigid columns are missing.
     """
-    from scipy.spatial.transform import Rotation
-
     names = list(params.names)
     values = np.asarray(params.values, np.float64)
     if all(n in names for n in MATRIX_NAMES) and all(n in names for n in FIT_TRANSLATION_NAMES):
@@ -57,7 +56,7 @@ def rigid_curves(params: ParamSequence, where: str = "series") -> tuple[np.ndarr
     good = np.isfinite(rot.reshape(len(rot), -1)).all(1) & np.isfinite(trans).all(1)
     matrices = np.full((len(values), 4, 4), np.nan)
     matrices[good] = np.eye(4)
-    matrices[good, :3, :3] = rot[good] if rot.ndim == 3 else Rotation.from_rotvec(rot[good]).as_matrix()
+    matrices[good, :3, :3] = rot[good] if rot.ndim == 3 else axis_angle_to_rotmat(rot[good])
     matrices[good, :3, 3] = trans[good]
     return matrix_curves(matrices)
 
@@ -109,8 +108,6 @@ def weight_columns(params: ParamSequence) -> list[int]:
 
 def projected_landmarks(params: ParamSequence, model: FaceModel, camera: Camera) -> np.ndarray:
     """(F, 68, 2) pixels of the model's 68 landmark vertices posed by the fitted parameters (NaN where unsolved)."""
-    from scipy.spatial.transform import Rotation
-
     from ..geometry.camera import project_points
 
     names = list(params.names)
@@ -126,7 +123,7 @@ def projected_landmarks(params: ParamSequence, model: FaceModel, camera: Camera)
         trans = values[:, [names.index(n) for n in FIT_TRANSLATION_NAMES]]
     else:
         rot = np.tile(np.eye(3), (len(values), 1, 1))
-        rot[angles_ok] = Rotation.from_rotvec(values[angles_ok][:, [names.index(n) for n in ROTATION_NAMES]]).as_matrix()
+        rot[angles_ok] = axis_angle_to_rotmat(values[angles_ok][:, [names.index(n) for n in ROTATION_NAMES]])
         trans = values[:, [names.index(n) for n in TRANSLATION_NAMES]]
     local = model.evaluate(np.nan_to_num(weights).astype(np.float32))[:, model.landmarks].astype(np.float64)
     world = np.einsum("fij,flj->fli", np.nan_to_num(rot), local) + np.nan_to_num(trans)[:, None]
@@ -178,7 +175,7 @@ class MotionReport(Node):
     version = 2
     kind = SEQUENCE
     writes_files = True
-    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg", "scipy.spatial.transform")
+    preload = ("matplotlib.figure", "matplotlib.backends.backend_agg")
 
     class Params(NodeParams):
         folder: str = Param("motion_report", output_file=True, description="Output folder (created if missing): "

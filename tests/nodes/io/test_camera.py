@@ -13,8 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from nodegraph import Camera, CameraRig, InputError, NodeError, run_node
 from nodes.io.camera import (LoadCamera, LoadCameraRig, SaveCamera, SaveCameraRig, load_camera,
-                             load_camera_rig, parse_opencv_yaml, rodrigues_to_rotmat, save_camera,
-                             save_camera_rig)
+                             load_camera_rig, parse_opencv_yaml, save_camera, save_camera_rig)
 
 # As OpenCV's calibration sample writes it (cv::FileStorage, YAML), with a known pose added.
 OPENCV_YAML = """%YAML:1.0
@@ -66,13 +65,6 @@ def make_camera(name: str = "cam0", seed: int = 0) -> Camera:
 
 
 # -- pure functions --------------------------------------------------------------------------
-
-def test_rodrigues_matches_scipy():
-    rng = np.random.default_rng(3)
-    for rvec in [*rng.normal(size=(5, 3)), np.zeros(3), np.array([0, 0, np.pi]), np.full(3, 1e-14)]:
-        np.testing.assert_allclose(rodrigues_to_rotmat(rvec), Rotation.from_rotvec(rvec).as_matrix(),
-                                   atol=1e-14)
-
 
 def test_parse_opencv_yaml_tags_matrices():
     data = parse_opencv_yaml(OPENCV_YAML)

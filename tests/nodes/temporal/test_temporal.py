@@ -14,7 +14,8 @@ from nodegraph import Camera, FlowSequence, ParamSequence, run_node  # noqa: E40
 from nodes.flow.geometric import render_flow  # noqa: E402
 from nodes.temporal import Average, FlowInfill, Hybrid  # noqa: E402
 from nodes.temporal.averaging import average_params, quaternion_mean  # noqa: E402
-from nodes.temporal.layout import RIGID_NAMES, axis_angle_from_quat, quat_from_axis_angle  # noqa: E402
+from nodes.geometry.rotation import axis_angle_to_quat, quat_to_axis_angle  # noqa: E402
+from nodes.temporal.layout import RIGID_NAMES  # noqa: E402
 from nodes.flow import OpticalFlow  # noqa: E402
 from nodes.temporal.synthetic import head_motion, make_scene, render_plates, scene_vertices  # noqa: E402
 
@@ -52,8 +53,8 @@ def _seq(values, names):
 
 def test_quaternion_mean_matches_slerp_midpoint_and_ignores_sign():
     a, b = np.array([0.0, 0.3, 0.0]), np.array([0.0, 0.5, 0.1])
-    qa, qb = quat_from_axis_angle(a), quat_from_axis_angle(b)
-    mid = axis_angle_from_quat(quaternion_mean(np.stack([qa, -qb]), np.array([0.5, 0.5])))
+    qa, qb = axis_angle_to_quat(a), axis_angle_to_quat(b)
+    mid = quat_to_axis_angle(quaternion_mean(np.stack([qa, -qb]), np.array([0.5, 0.5])))
     from scipy.spatial.transform import Rotation, Slerp
 
     ref = Slerp([0, 1], Rotation.from_rotvec([a, b]))(0.5).as_rotvec()
