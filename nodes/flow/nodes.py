@@ -24,16 +24,23 @@ class OpticalFlow(Node):
     class Params(NodeParams):
         alpha: float = Param(0.06, gt=0, description="Smoothness weight (normalized intensity units).")
         levels: int = Param(5, ge=1, le=8, description="Pyramid levels at most.")
-        warps: int = Param(8, ge=1, le=20, description="Warps per level but the finest (8: on 256 px face renders with ~6 px motion the end-point error is 0.98 px, against 1.63 with 3 warps).")
-        finest_warps: int = Param(2, ge=1, le=20, description="Warps at the finest level when it is over 128x128 pixels (smaller images keep `warps`: cheap, and their small faces need them); that level costs 4x the next (256 px face renders, ~6 px motion: 2 warps 0.98 px end-point error in 5.4 ms on 2 threads, 8 warps 0.88 px in 8.8 ms).")
+        warps: int = Param(8, ge=1, le=20, description="Warps per level but the finest: each warp re-linearises "
+                         "the data term about the flow found so far, which motions of several pixels per level "
+                         "need; 8 because fewer leave a clearly larger error on face renders (bench/temporal.py).")
+        finest_warps: int = Param(2, ge=1, le=20, description="Warps at the finest level when it is over 128x128 pixels "
+                               "(smaller images keep `warps`: they are cheap, and their small faces need them). "
+                               "The finest level costs about 4x the next and starts from the motion the coarser "
+                               "levels found, so 2 warps keep most of the accuracy of 8 at a fraction of the "
+                               "time (bench/temporal.py prints both).")
         iterations: int = Param(40, ge=1, le=500, description="Jacobi iterations per warp, coarsest level.")
         finest_iterations: int = Param(12, ge=1, le=500, description="Jacobi iterations per warp, finest level.")
-        skip_levels: int = Param(0, ge=0, le=3, description="Finest pyramid levels not solved (the flow is "
-                                 "upsampled): 1 is about half the time at a coarser flow (256 px face renders: "
-                                 "end-point error 1.04 against 0.81 px).")
+        skip_levels: int = Param(0, ge=0, le=3, description="Finest pyramid levels not solved (the flow of the "
+                                 "next coarser level is upsampled): each one skipped saves most of the time, at "
+                                 "a coarser flow; 0 (every level solved) is the accurate setting.")
         median_every_warp: bool = Param(False, description="3x3 median of the flow after every warp instead of "
-                                        "after every level (bench/temporal.py's fast setting: skip_levels 1, "
-                                        "warps 7, alpha 0.07 and this).")
+                                        "after every level: outliers are removed before the next warp builds on "
+                                        "them; off by default, where the per-level median suffices; "
+                                        "bench/temporal.py's fast setting (skip_levels 1) turns it on.")
 
     images = In(ImageSequence, doc="Plates (F, H, W, C); colour channels reduced to luminance (linear light).")
     flow = Out(FlowSequence, doc="(F, H, W, 2) pixels, x right y down: frame f -> f + 1; the last frame "

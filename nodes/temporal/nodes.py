@@ -290,10 +290,10 @@ class AdaptiveSmooth(Node):
 
     class Params(NodeParams):
         fidelity: float = Param(0.85, gt=0, le=2, description="Residual RMS aimed at, in units of each curve's "
-                                "measured noise (1 = the discrepancy principle; 0.85 because a smoother keeps "
-                                "part of the noise in its own degrees of freedom: on bench/smoothing.py's slow "
-                                "curves it gave the lowest error to the truth, 0.55-0.65 of 3-frame averaging's; on "
-                                "its blink 0.96 of it).")
+                                "measured noise (1 = the discrepancy principle). Below 1 because a smoother keeps "
+                                "part of the noise in its own degrees of freedom, so aiming at all of it smooths "
+                                "too much; 0.85 gives the lowest error to the truth on bench/smoothing.py's "
+                                "curves (figures in its output and the README).")
         edge_k: float = Param(3.0, gt=0, description="A frame whose curvature exceeds edge_k noise std is an event "
                               "(blink, jaw snap, fast turn) and is not smoothed through.")
         weights: bool = Param(True, description="Smooth the expression weights too (false: the pose only).")
