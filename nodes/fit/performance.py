@@ -7,17 +7,9 @@ import numpy as np
 
 from nodegraph import (FRAMEWISE, FaceModel, ImageSequence, In, InputError, JsonValue, MeshSequence, Node, NodeParams,
                        Out, Param, ParamSequence, Performance)
+from nodegraph.flags import flags_to_mask
 
-__all__ = ["failed_column", "posed_vertices", "MakePerformance", "PosedMesh"]
-
-
-def failed_column(flags: ParamSequence, where: str = "failed") -> np.ndarray:
-    """(F,) bool from a flags sequence: its `failed` column (else its first), nonzero = failed."""
-    if not flags.names:
-        raise InputError(where, "expected a flags sequence with a 'failed' column, found no columns")
-    column = flags.names.index("failed") if "failed" in flags.names else 0
-    values = flags.values[:, column]
-    return ~np.isfinite(values) | (values > 0.5)
+__all__ = ["posed_vertices", "MakePerformance", "PosedMesh"]
 
 
 def posed_vertices(model: FaceModel, performance: Performance) -> np.ndarray:
@@ -46,7 +38,8 @@ class MakePerformance(Node):
 
     fitted = In(ParamSequence, doc="From fit.Expression or the temporal nodes: r00..r22, tx, ty, tz, weights.")
     failed = In(ParamSequence, optional=True, doc="Flags (fit.FlagFailures' flags or temporal.FlowInfill's "
-                "still_failed): its 'failed' column; absent: only frames with non-finite values failed.")
+                "still_failed): its 'failed' column, NaN counting as failed (nodegraph.flags); absent: only frames "
+                "with non-finite values failed.")
     identity = In(JsonValue, optional=True, doc="From fit.EstimateIdentity: {'identity': [I weights], ...}.")
     images = In(ImageSequence, optional=True, doc="The plates (for their frame rate).")
     performance = Out(Performance, doc="Pose (model-to-world, cm), weights by the model's shape names, flags.")
@@ -54,7 +47,7 @@ class MakePerformance(Node):
     def run(self, fitted: ParamSequence, failed: ParamSequence | None = None, identity: JsonValue | None = None,
             images: ImageSequence | None = None) -> dict[str, Performance]:
         fps = self.params.fps or (images.fps if images is not None else 30.0)
-        flags = None if failed is None else failed_column(failed)
+        flags = None if failed is None else flags_to_mask(failed, fitted.num_frames)
         ident = None
         if identity is not None:
             value = identity.value.get("identity") if isinstance(identity.value, dict) else None

@@ -22,6 +22,7 @@ import numpy as np
 from nodegraph import (Camera, FaceModel, FlowSequence, In, InputError, JsonValue, Node, NodeParams, Out,
                        ParamSequence, Param)
 from nodegraph import SEQUENCE, windowed
+from nodegraph.flags import flags_to_mask, mask_to_flags
 
 from .layout import from_unknowns, params_layout, to_unknowns
 
@@ -42,14 +43,6 @@ def _shape_ids(names: list[str], which: str) -> list[int]:
     if which == "all":
         return list(range(len(names)))
     return [i for i, n in enumerate(names) if n.startswith("jaw") or n.startswith("mouth")]
-
-
-def _failed_mask(failed: ParamSequence | None, frames: int) -> np.ndarray:
-    if failed is None:
-        return np.zeros(frames, bool)
-    if failed.values.shape[1] < 1:
-        raise InputError("failed", f"expected (F, 1) flags, found {failed.values.shape}")
-    return failed.values[:, 0] > 0.5
 
 
 class _FlowNode(Node):
@@ -136,7 +129,7 @@ class FlowInfill(_FlowNode):
 
     fitted = In(ParamSequence, doc="Fitted parameters (r00..r22 + tx ty tz cm as nodes.fit, or rot_x..z "
                     "rad + trans_x..z cm; weights by shape name).")
-    failed = In(ParamSequence, doc="(F, 1) 1 where the fit failed.")
+    failed = In(ParamSequence, doc="(F, 1+) flags, 1 (or NaN) in the 'failed' column where the fit failed.")
     plate_flow = In(FlowSequence, doc="Optical flow of the plates, frame f -> f + 1 (flow.OpticalFlow).")
     model = In(FaceModel, doc="The face model fitted.")
     camera = In(Camera, doc="The plates' camera.")
@@ -152,7 +145,7 @@ class FlowInfill(_FlowNode):
         p = self.params
         fm, x, flows, layout, have = self._setup(fitted, model, camera, plate_flow, p.shapes, p.stride)
         scene = _render_scene(fm, model, appearance, self.device) if p.render_flow == "optical" else None
-        mask = _failed_mask(failed, len(x))
+        mask = flags_to_mask(failed, len(x))
         at_start = self.frames.start == self.full_frames.start if len(self.full_frames) else True
         at_end = self.frames.stop == self.full_frames.stop if len(self.full_frames) else True
         x, still, _ = infill(fm, x, flows, plate_flow.valid, mask, max_gap=p.max_gap, sweeps=p.sweeps,
@@ -161,7 +154,7 @@ class FlowInfill(_FlowNode):
                              optical_steps=p.optical_steps, progress=self.progress)
         infilled = self._pack(fitted, x, layout, have)
         infilled.values[still] = fitted.values[still]  # unsolved or rejected: the fit's values (NaN if none)
-        return {"infilled": infilled, "still_failed": ParamSequence(still.astype(np.float32)[:, None], ["failed"])}
+        return {"infilled": infilled, "still_failed": mask_to_flags(still)}
 
 
 class _SmoothParams(_SolveParams):
@@ -184,7 +177,8 @@ class _Smooth(_FlowNode):
     plate_flow = In(FlowSequence, doc="Optical flow of the plates, frame f -> f + 1 (flow.OpticalFlow).")
     model = In(FaceModel, doc="The face model fitted.")
     camera = In(Camera, doc="The plates' camera.")
-    failed = In(ParamSequence, optional=True, doc="(F, 1) 1 for frames to leave alone (and not use).")
+    failed = In(ParamSequence, optional=True, doc="(F, 1+) flags, 1 (or NaN) in the 'failed' column for frames "
+                "to leave alone and not use.")
     smoothed = Out(ParamSequence, doc="Smoothed parameters.")
 
     def run(self, fitted: ParamSequence, plate_flow: FlowSequence, model: FaceModel, camera: Camera,
@@ -196,7 +190,7 @@ class _Smooth(_FlowNode):
 
         p = self.params
         fm, x, flows, layout, have = self._setup(fitted, model, camera, plate_flow, p.shapes, p.stride)
-        mask = _failed_mask(failed, len(x))
+        mask = flags_to_mask(failed, len(x))
         prior = x.clone()
         if self._average:
             avg = average_params(x.cpu().numpy(), np.arange(3), np.arange(3, x.shape[1]),
@@ -258,7 +252,8 @@ class Average(Node):
 
     fitted = In(ParamSequence, doc="Parameters (r00..r22 + tx ty tz cm, or rot_x..z rad + trans_x..z cm; "
                 "other columns averaged linearly).")
-    failed = In(ParamSequence, optional=True, doc="(F, 1) 1 for frames to leave alone (and not use).")
+    failed = In(ParamSequence, optional=True, doc="(F, 1+) flags, 1 (or NaN) in the 'failed' column for frames "
+                "to leave alone and not use.")
     averaged = Out(ParamSequence, doc="Averaged parameters.")
 
     def run(self, fitted: ParamSequence, failed: ParamSequence | None = None) -> dict[str, ParamSequence]:
@@ -268,15 +263,14 @@ class Average(Node):
             layout = params_layout(fitted.names, [], "fitted")
         except ValueError as err:
             raise InputError("fitted", str(err).removeprefix("fitted: ")) from err
+        mask = flags_to_mask(failed, fitted.num_frames)
         x = to_unknowns(fitted.values, layout)
-        out = average_params(x, np.arange(3), np.arange(3, 6), centre_weight=self.params.centre_weight,
-                             failed=_failed_mask(failed, fitted.num_frames))
+        out = average_params(x, np.arange(3), np.arange(3, 6), centre_weight=self.params.centre_weight, failed=mask)
         others = np.setdiff1d(np.arange(fitted.values.shape[1]), np.r_[layout.rotation, layout.translation])
         out = from_unknowns(out, fitted.values, layout)
         avg = average_params(fitted.values, np.zeros(0, np.int64), others, centre_weight=self.params.centre_weight,
-                             failed=_failed_mask(failed, fitted.num_frames))
+                             failed=mask)
         out[:, others] = avg[:, others]
-        mask = _failed_mask(failed, fitted.num_frames)
         out[mask] = fitted.values[mask]  # left alone: exactly as given (NaN stays NaN)
         return {"averaged": ParamSequence(out.astype(np.float32), list(fitted.names))}
 
@@ -300,7 +294,8 @@ class AdaptiveSmooth(Node):
 
     fitted = In(ParamSequence, doc="Parameters (r00..r22 + tx ty tz cm + weights, or rot_x..z rad + trans_x..z cm + "
                 "weights): e.g. fit.Expression's, or the temporal nodes'.")
-    failed = In(ParamSequence, optional=True, doc="(F, 1) 1 for frames to leave alone (and not use).")
+    failed = In(ParamSequence, optional=True, doc="(F, 1+) flags, 1 (or NaN) in the 'failed' column for frames "
+                "to leave alone and not use.")
     smoothed = Out(ParamSequence, doc="Smoothed parameters (failed frames as given).")
 
     def run(self, fitted: ParamSequence, failed: ParamSequence | None = None) -> dict[str, ParamSequence]:
@@ -313,7 +308,7 @@ class AdaptiveSmooth(Node):
         pose = np.r_[layout.rotation, layout.translation]
         others = np.setdiff1d(np.arange(fitted.values.shape[1]), pose)
         linear = np.r_[layout.translation, others if self.params.weights else np.zeros(0, np.int64)]
-        mask = _failed_mask(failed, fitted.num_frames)
+        mask = flags_to_mask(failed, fitted.num_frames)
         out = smooth_pose_and_weights(fitted.values, layout.rotation, linear, mask, matrix=layout.matrix,
                                       fidelity=self.params.fidelity, edge_k=self.params.edge_k)
         return {"smoothed": ParamSequence(out.astype(np.float32), list(fitted.names))}

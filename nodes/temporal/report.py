@@ -18,6 +18,7 @@ import numpy as np
 from nodegraph import (SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, ParamSequence,
                        RigidSequence, Table)
 from nodegraph.files import files_value
+from nodegraph.flags import flags_to_mask
 
 from ..geometry.rotation import axis_angle_to_rotmat
 from ..report.plots import plot_rigid_curves, rigid_to_euler_translation
@@ -188,7 +189,8 @@ class MotionReport(Node):
     truth = In(ParamSequence, optional=True, doc="True parameters, when known (synthetic plates).")
     truth_rigid = In(RigidSequence, optional=True, doc="Or the truth as model-to-world transforms (e.g. the skull of "
                                                        "a synthetic performance, rendered by a camera in its world).")
-    failed = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0 where the fit failed (shaded).")
+    failed = In(ParamSequence, optional=True, doc="(F, 1+) flags: 1 in the 'failed' column (else the first) "
+                "where the fit failed (shaded; see nodegraph.flags).")
     model = In(FaceModel, optional=True, doc="The fitted model: with `camera`, the projected 68 points' roughness "
                "and deviation.")
     camera = In(Camera, optional=True, doc="The plate's camera (with `model`).")
@@ -221,8 +223,7 @@ class MotionReport(Node):
             raise InputError("labels", f"'truth' names the connected truth; expected other names, found {labels}")
         if truth is not None and truth.num_frames != frames:
             raise InputError("truth", f"expected {frames} frames (as the series), found {truth.num_frames}")
-        if failed is not None and (failed.num_frames != frames or failed.values.shape[1] < 1):
-            raise InputError("failed", f"expected ({frames}, 1+) flags, found {failed.values.shape}")
+        mask = flags_to_mask(failed, frames)  # failed frames are shaded; NaN flags count as failed
         curves = {name: rigid_curves(seq, "series") for name, seq in zip(labels, series)}
         true_curves = rigid_curves(truth, "truth") if truth is not None else None
         if truth_rigid is not None:
@@ -260,7 +261,6 @@ class MotionReport(Node):
             rows.append([row[0]] + [round(v, 6) for v in row[1:]])
         table = Table(list(COLUMNS), rows)
         folder = Path(self.params.folder)
-        mask = failed.values[:, 0] > 0.5 if failed is not None else np.zeros(frames, bool)
         shown = ({"truth": true_curves} if true_curves is not None else {}) | curves
         png = plot_rigid_curves(shown, folder / "motion.png", first_frame=self.frames.start, shaded=mask,
                                 dashed="truth" if true_curves is not None else None)

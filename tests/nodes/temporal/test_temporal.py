@@ -73,6 +73,17 @@ def test_average_node_smooths_and_keeps_failed_frames(shot):
     np.testing.assert_allclose(out[0], ref[0], atol=1e-6)
 
 
+def test_average_node_reads_a_nan_flag_as_failed():
+    names = ["rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z", "jawOpen"]
+    values = np.random.default_rng(5).normal(0, 0.05, (9, 7)).astype(np.float32)
+    one, nan = np.zeros((9, 1), np.float32), np.zeros((9, 1), np.float32)
+    one[3], nan[3] = 1.0, np.nan
+    with_one = run_node(Average, fitted=ParamSequence(values, names), failed=ParamSequence(one, ["failed"]))
+    with_nan = run_node(Average, fitted=ParamSequence(values, names), failed=ParamSequence(nan, ["failed"]))
+    np.testing.assert_array_equal(with_nan["averaged"].values, with_one["averaged"].values)
+    np.testing.assert_array_equal(with_nan["averaged"].values[3], values[3])
+
+
 def test_flow_infill_beats_interpolation_during_fast_mouth_motion(shot):
     scene, names, truth, plate_flow = shot
     failed = np.zeros(9, bool)
