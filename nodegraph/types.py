@@ -24,9 +24,6 @@ from .face_model import FaceModel
 from .images import COLOUR_SPACES, ImageSequence, linear_to_srgb, srgb_to_linear
 from .models import TorchModel
 from .ports import PortType, port_type_by_name, port_types
-from .ports import check_array as _check_array  # the names modules written before the split use
-from .ports import check_finite as _check_finite
-from .ports import fail as _fail
 from .sequences import FlowSequence, Landmarks2D, MeshSequence, ParamSequence, RigidSequence
 from .values import Files, JsonValue, Table
 
