@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "skew", "axis_angle_to_rotmat", "rotmat_to_axis_angle", "axis_angle_to_quat",
-    "quat_to_axis_angle", "quat_to_rotmat", "rotmat_to_quat", "euler_to_rotmat", "rotmat_to_euler",
+    "quat_to_axis_angle", "quat_to_rotmat", "rotmat_to_quat", "quat_mean", "euler_to_rotmat", "rotmat_to_euler",
     "skew_torch", "axis_angle_to_rotmat_torch", "quat_to_rotmat_torch", "rotmat_to_quat_torch",
 ]
 
@@ -281,6 +281,28 @@ def rotmat_to_quat_torch(rot: Tensor) -> Tensor:
     q = torch.take_along_dim(cand, best[..., None].expand(*best.shape, 4), dim=-2)[..., 0, :]
     q = q / q.norm(dim=-1, keepdim=True)
     return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quat_mean(quats: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted mean rotation: the unit quaternion maximising `sum_n w_n (q . q_n)^2`, the
+    eigenvector of the largest eigenvalue of `sum_n w_n q_n q_n^T` (Markley et al. 2007, "Averaging
+    quaternions"; scipy's `Rotation.mean`), blind to the signs of the `q_n`.
+
+    Args:
+        quats: (..., N, 4) unit quaternions (w, x, y, z), any signs.
+        weights: (..., N) >= 0, not all 0.
+    Returns:
+        (..., 4) unit quaternion, w >= 0.
+
+    Example:
+        >>> q = np.array([[1.0, 0, 0, 0], [-1.0, 0, 0, 0]])
+        >>> quat_mean(q, np.array([0.5, 0.5])).round(6).tolist()
+        [1.0, 0.0, 0.0, 0.0]
+    """
+    m = np.einsum("...n,...ni,...nj->...ij", weights, quats, quats)
+    _, vecs = np.linalg.eigh(m)
+    q = vecs[..., :, -1]
+    return np.where(q[..., :1] < 0, -q, q)
 
 
 # -- Euler angles -----------------------------------------------------------------------------

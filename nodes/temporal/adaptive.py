@@ -25,6 +25,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..geometry.rotation import (axis_angle_to_rotmat, quat_mean, quat_to_rotmat, rotmat_to_axis_angle,
+                                 rotmat_to_quat)
+
 __all__ = ["noise_sigma", "whittaker", "SmoothedCurve", "smooth_curve", "smooth_curves", "smooth_pose_and_weights"]
 
 _MAD_TO_SIGMA = 1.4826
@@ -189,8 +192,6 @@ def smooth_pose_and_weights(values: np.ndarray, rotation: np.ndarray, linear: np
     Returns:
         (F, D) float64; other columns and failed frames as given.
     """
-    from scipy.spatial.transform import Rotation
-
     v = np.asarray(values, np.float64)
     f = len(v)
     out = v.copy()
@@ -200,14 +201,14 @@ def smooth_pose_and_weights(values: np.ndarray, rotation: np.ndarray, linear: np
         return out
     if len(rotation):
         rows = v[ok][:, rotation]
-        rot = Rotation.from_matrix(rows.reshape(-1, 3, 3)) if matrix else Rotation.from_rotvec(rows)
-        mean = rot.mean()
+        rot = quat_to_rotmat(rotmat_to_quat(rows.reshape(-1, 3, 3))) if matrix else axis_angle_to_rotmat(rows)
+        mean = quat_to_rotmat(quat_mean(rotmat_to_quat(rot), np.ones(len(rot))))
         local = np.zeros((f, 3))
-        local[ok] = (mean.inv() * rot).as_rotvec()
+        local[ok] = rotmat_to_axis_angle(mean.T @ rot)  # each frame's rotation relative to the mean
         smoothed, _ = smooth_curves(local, ok, **kwargs)
-        back = mean * Rotation.from_rotvec(smoothed[ok])
+        back = mean @ axis_angle_to_rotmat(smoothed[ok])
         out[np.flatnonzero(ok)[:, None], np.asarray(rotation)[None]] = \
-            back.as_matrix().reshape(-1, 9) if matrix else back.as_rotvec()
+            back.reshape(-1, 9) if matrix else rotmat_to_axis_angle(back)
     for j in linear:
         column = v[:, j]
         smoothed = smooth_curve(np.where(ok, column, np.nan), ok, **kwargs).values

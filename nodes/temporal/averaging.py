@@ -13,29 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry.rotation import axis_angle_to_quat, quat_to_axis_angle
+from ..geometry.rotation import axis_angle_to_quat, quat_mean, quat_to_axis_angle
 
-__all__ = ["quaternion_mean", "average_params"]
-
-
-def quaternion_mean(quats: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Weighted mean rotation (Markley et al. 2007).
-
-    Args:
-        quats: (..., N, 4) unit quaternions (w, x, y, z), any signs.
-        weights: (..., N) >= 0, not all 0.
-    Returns:
-        (..., 4) unit quaternion, w >= 0.
-
-    Example:
-        >>> q = np.array([[1.0, 0, 0, 0], [-1.0, 0, 0, 0]])
-        >>> quaternion_mean(q, np.array([0.5, 0.5])).round(6).tolist()
-        [1.0, 0.0, 0.0, 0.0]
-    """
-    m = np.einsum("...n,...ni,...nj->...ij", weights, quats, quats)
-    _, vecs = np.linalg.eigh(m)
-    q = vecs[..., :, -1]
-    return np.where(q[..., :1] < 0, -q, q)
+__all__ = ["average_params"]
 
 
 def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray, *, centre_weight: float = 0.5,
@@ -67,6 +47,6 @@ def average_params(values: np.ndarray, rotation: np.ndarray, others: np.ndarray,
     rotation = np.asarray(rotation, np.int64)
     if len(rotation):
         quats = axis_angle_to_quat(v[:, rotation])[idx]  # (F, 3, 4)
-        out[:, rotation] = quat_to_axis_angle(quaternion_mean(quats, w))
+        out[:, rotation] = quat_to_axis_angle(quat_mean(quats, w))
     out[~ok] = np.asarray(values, np.float64)[~ok]  # as given, NaN included
     return out

@@ -15,8 +15,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from nodes.geometry import rotation
-from nodes.geometry.rotation import (axis_angle_to_quat, axis_angle_to_rotmat, euler_to_rotmat, quat_to_axis_angle,
-                                     quat_to_rotmat, rotmat_to_axis_angle, rotmat_to_euler, rotmat_to_quat, skew)
+from nodes.geometry.rotation import (axis_angle_to_quat, axis_angle_to_rotmat, euler_to_rotmat, quat_mean,
+                                     quat_to_axis_angle, quat_to_rotmat, rotmat_to_axis_angle, rotmat_to_euler,
+                                     rotmat_to_quat, skew)
 
 ORDERS = ["xyz", "xzy", "yxz", "yzx", "zxy", "zyx", "XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"]
 
@@ -81,6 +82,18 @@ def test_rotmat_to_quat_of_a_float32_rotation_matches_scipy():
     m = Rotation.from_rotvec(_rotvecs(50, seed=2)).as_matrix().astype(np.float32)  # ~1e-7 off orthonormal
     got, ref = rotmat_to_quat(m), _wxyz(Rotation.from_matrix(m.astype(np.float64)))
     np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", got, ref)), 1.0, atol=1e-12)
+
+
+def test_quat_mean_matches_scipy_and_ignores_signs():
+    rng = np.random.default_rng(4)
+    w = rng.normal(0, 0.4, (3, 7, 3)) + np.array([0.3, -1.0, 0.5])  # three clusters of 7 rotations
+    weights = rng.uniform(0.1, 1.0, (3, 7))
+    q = axis_angle_to_quat(w) * rng.choice([-1.0, 1.0], (3, 7, 1))
+    got = quat_mean(q, weights)
+    for k in range(3):
+        ref = _wxyz(Rotation.from_rotvec(w[k]).mean(weights=weights[k]))
+        np.testing.assert_allclose(abs(got[k] @ ref), 1.0, atol=1e-12)  # eigh's accuracy, a few ulps of 1
+    assert (got[:, 0] >= 0).all()
 
 
 @pytest.mark.parametrize("order", ORDERS)
