@@ -209,6 +209,8 @@ def _compute(spec: TaskSpec, deps: Sequence[TaskResult]) -> dict[str, PortType]:
     """The node's values for one task: its inputs joined from `deps`, run, trimmed to the chunk."""
     node = spec.node_cls(spec.params, node_id=spec.node)
     node.run_log = [dict(record) for record in spec.run_log]
+    node.cache_root = spec.cache_root  # the run's cache folder (None: no cache), for nodes that keep
+    # finer entries of their own there (nodegraph.takes.cached_take: one per file read)
     inputs: dict[str, Any] = {}
     for port, pieces in spec.inputs:
         value = _COMBINED.get(deps, pieces, pieces[0][2] >= 0)

@@ -23,12 +23,13 @@ BUILDS_ON = {
     "flow": {"render"},
     "fit": {"render", "landmarks", "flow"},
     "temporal": {"fit", "flow", "render", "report"},
-    "dynamics": set(),
+    "dynamics": {"stabilize"},
     "report": {"render"},
     "export": set(),
 }
 """Area -> the non-shared areas it may import. temporal -> report: temporal.MotionReport draws with
-the report area's plotting helpers."""
+the report area's plotting helpers. dynamics -> stabilize: dynamics.StabilizeTakes stabilizes the
+training takes that carry no tracked skull by mode pursuit."""
 
 
 def _imports(path: Path) -> list[tuple[str, list[str]]]:

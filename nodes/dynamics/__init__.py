@@ -2,4 +2,4 @@
 
 from .._areas import import_modules
 
-import_modules(__name__, ["networks", "removal", "synthesis", "descriptors", "evaluate", "files"])
+import_modules(__name__, ["networks", "removal", "synthesis", "descriptors", "evaluate", "files", "takes"])

@@ -21,7 +21,7 @@ it cuts the region, removes its dynamics and puts it back (the rest of the mesh 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from .networks import predict, single_thread, standardize_stats, train_mlp
 from .propagate import cached_edges, cached_interpolation_matrix, propagate_offsets
 
 __all__ = ["HALO", "region_vertices", "topology_problem", "check_model", "locate_region", "model_edges",
-           "TrainRemoval", "RemoveDynamics"]
+           "fit_removal", "predict_removal", "remove_dynamics", "TrainRemoval", "RemoveDynamics"]
 
 HALO = 16
 """Halo of the windowed dynamics nodes (frames): the window of w = 10 samples at the feature
@@ -221,61 +221,96 @@ class TrainRemoval(Node):
                                              f"vertices (as capture 0), capture {i} has {c.num_vertices}")
         rest = stabilize_points(first.vertices[:1], skulls[0].matrices[:1])[0]
         samples = select_samples(rest, p.num_samples, region_vertices(first, p.region))
-        landmarks = skull_landmarks(rest)
         seed = self.seed if p.seed is None else p.seed
-        rng = np.random.default_rng(seed)
-        inputs, targets = [], []
-        valid_frames = []
-        for i in range(count):
-            fps = float(captures[i].fps)
-            reach = window_reach(p.window, fps, p.feature_fps)
-            margin = max(reach, p.target_window if p.target == "moving_average" else 0)
-            labels = segments[i].values[:, 0] if segments else None
-            ok = segment_margin_mask(labels, captures[i].num_frames, margin)
-            ok[:margin] = ok[-margin:] = False
-            valid_frames.append(np.flatnonzero(ok))
-        total = sum(len(v) for v in valid_frames) * len(samples)
-        if total == 0:
-            raise InputError("captures", "expected frames away from segment changes and ends, found none")
-        for i in range(count):
-            frames = valid_frames[i]
-            quota = int(round(p.max_rows * len(frames) * len(samples) / total))
-            if quota == 0 or not len(frames):
-                continue
-            pick = rng.choice(len(frames) * len(samples), min(quota, len(frames) * len(samples)),
-                              replace=False)
-            rows_f, rows_s = frames[pick // len(samples)], pick % len(samples)
-            fps, skull = float(captures[i].fps), skulls[i].matrices
-            x = captures[i].vertices[:, samples]
-            y = (quasistatic[i].vertices[:, samples] if p.target == "truth"
-                 else moving_average_target(x, skull, window=p.target_window))
-            offsets = dynamic_offsets(x, y, skull)  # (F, N, 3)
-            b = skull_descriptor(skull, landmarks, fps, window=p.window, feature_fps=p.feature_fps)
-            vel = skin_velocity(x, skull, fps)
-            skin = window_gather(vel, rows_f, p.window, fps, p.feature_fps, columns=rows_s)
-            inputs.append(np.concatenate([b[rows_f], skin.reshape(len(rows_f), -1).astype(np.float32)], 1))
-            targets.append(offsets[rows_f, rows_s].astype(np.float32))
-            self.progress(0.1 * (i + 1) / count, f"features of capture {i + 1}/{count}")
-        x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
-        in_mean, in_std = standardize_stats(x_all)
-        out_mean, out_std = standardize_stats(y_all)
-        result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std,
-                           hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
-                           seed=seed % (2 ** 63), device=self.device,
-                           progress=lambda f, m: self.progress(0.1 + 0.9 * f, m))
-        config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden), "out_features": 3,
-                  "kind": "removal", "window": p.window, "feature_fps": p.feature_fps,
-                  "num_vertices": first.num_vertices, "target": p.target}
-        norm = {"input_mean": in_mean, "input_std": in_std, "output_mean": out_mean,
-                "output_std": out_std, "sample_ids": samples.astype(np.int64),
-                "skull_landmarks": landmarks, "rest_vertices": rest.astype(np.float32)}
+        labels = [s.values[:, 0] for s in segments] if segments else [None] * count
+        model, report = fit_removal(p, [c.vertices for c in captures], [float(c.fps) for c in captures],
+                                    [s.matrices for s in skulls],
+                                    [q.vertices for q in quasistatic] if quasistatic else None, labels,
+                                    rest, samples, seed, self.device, self.progress)
         if region_ids is not None:
-            config.update(region=p.region_name, whole_vertices=int(whole.neutral.shape[0]))
-            norm["region_ids"] = region_ids
-        model = TorchModel.from_module("dynamics.MLP", config, result.module, norm)
-        report = {"rows": int(len(x_all)), "epochs": p.epochs, "seconds": round(result.seconds, 3),
-                  "final_loss": result.losses[-1], "losses": [round(v, 6) for v in result.losses]}
+            model.config.update(region=p.region_name, whole_vertices=int(whole.neutral.shape[0]))
+            model.normalization["region_ids"] = region_ids
         return {"model": model, "report": JsonValue(report)}
+
+
+def fit_removal(p: NodeParams, vertices: list[np.ndarray], fps: list[float], skulls: list[np.ndarray],
+                quasistatic: list[np.ndarray] | None, segments: list[np.ndarray | None], rest: np.ndarray,
+                samples: np.ndarray, seed: int, device: str,
+                progress: Callable[[float, str], None],
+                target_windows: list[int] | None = None) -> tuple[TorchModel, dict]:
+    """Draw training rows from captures and fit F (the body of dynamics.TrainRemoval).
+
+    Args:
+        p: TrainRemoval's parameters (target, window, feature_fps, target_window, hidden,
+            epochs, batch_size, lr, max_rows).
+        vertices: per capture (F_i, V, 3) world positions, cm.
+        fps: per capture frames per second.
+        skulls: per capture (F_i, 4, 4) skull-to-world.
+        quasistatic: per capture (F_i, V, 3) true quasistatic positions (target 'truth'), or None.
+        segments: per capture (F_i,) segment labels, or None (one segment).
+        rest: (V, 3) skull-frame rest shape (landmarks, the kNN graph of point sets), cm.
+        samples: (N,) sample vertex indices.
+        seed: rows, batch order and weights.
+        device: torch device.
+        progress: callback (fraction, message); one message per epoch with its loss.
+        target_windows: per capture half-width (frames) of the moving-average target; None =
+            `p.target_window` for every capture.
+    Returns:
+        (the model, a report: rows, epochs, seconds, final_loss, losses).
+    Raises:
+        InputError: ("captures") no frame far enough from segment changes and ends.
+    """
+    landmarks = skull_landmarks(rest)
+    rng = np.random.default_rng(seed)
+    count = len(vertices)
+    windows = list(target_windows) if target_windows is not None else [p.target_window] * count
+    inputs, targets = [], []
+    valid_frames = []
+    for i in range(count):
+        reach = window_reach(p.window, fps[i], p.feature_fps)
+        margin = max(reach, windows[i] if p.target == "moving_average" else 0)
+        ok = segment_margin_mask(segments[i], len(vertices[i]), margin)
+        ok[:margin] = ok[-margin:] = False
+        valid_frames.append(np.flatnonzero(ok))
+    total = sum(len(v) for v in valid_frames) * len(samples)
+    if total == 0:
+        raise InputError("captures", "expected frames away from segment changes and ends, found none")
+    for i in range(count):
+        frames = valid_frames[i]
+        quota = int(round(p.max_rows * len(frames) * len(samples) / total))
+        if quota == 0 or not len(frames):
+            continue
+        pick = rng.choice(len(frames) * len(samples), min(quota, len(frames) * len(samples)),
+                          replace=False)
+        rows_f, rows_s = frames[pick // len(samples)], pick % len(samples)
+        skull = skulls[i]
+        x = vertices[i][:, samples]
+        y = (quasistatic[i][:, samples] if p.target == "truth"
+             else moving_average_target(x, skull, window=windows[i]))
+        offsets = dynamic_offsets(x, y, skull)  # (F, N, 3)
+        b = skull_descriptor(skull, landmarks, fps[i], window=p.window, feature_fps=p.feature_fps)
+        vel = skin_velocity(x, skull, fps[i])
+        skin = window_gather(vel, rows_f, p.window, fps[i], p.feature_fps, columns=rows_s)
+        inputs.append(np.concatenate([b[rows_f], skin.reshape(len(rows_f), -1).astype(np.float32)], 1))
+        targets.append(offsets[rows_f, rows_s].astype(np.float32))
+        progress(0.1 * (i + 1) / count, f"features of capture {i + 1}/{count}")
+    x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
+    in_mean, in_std = standardize_stats(x_all)
+    out_mean, out_std = standardize_stats(y_all)
+    result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std,
+                       hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
+                       seed=seed % (2 ** 63), device=device,
+                       progress=lambda f, m: progress(0.1 + 0.9 * f, m))
+    config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden), "out_features": 3,
+              "kind": "removal", "window": p.window, "feature_fps": p.feature_fps,
+              "num_vertices": int(vertices[0].shape[1]), "target": p.target}
+    norm = {"input_mean": in_mean, "input_std": in_std, "output_mean": out_mean,
+            "output_std": out_std, "sample_ids": samples.astype(np.int64),
+            "skull_landmarks": landmarks, "rest_vertices": np.asarray(rest, np.float32)}
+    model = TorchModel.from_module("dynamics.MLP", config, result.module, norm)
+    report = {"rows": int(len(x_all)), "epochs": p.epochs, "seconds": round(result.seconds, 3),
+              "final_loss": result.losses[-1], "losses": [round(v, 6) for v in result.losses]}
+    return model, report
 
 
 def predict_removal(model: TorchModel, vertices: np.ndarray, skull: np.ndarray, fps: float) -> np.ndarray:
@@ -293,6 +328,43 @@ def predict_removal(model: TorchModel, vertices: np.ndarray, skull: np.ndarray, 
             rows = np.concatenate([np.broadcast_to(b[f], (len(ids), b.shape[1])), x[f]], axis=1)
             out[f] = predict(net, (rows - mean) / std) * norm["output_std"] + norm["output_mean"]
     return out
+
+
+def remove_dynamics(model: TorchModel, capture: MeshSequence, skull: np.ndarray, fps: float,
+                    region: np.ndarray | None = None, *, constraint_weight: float = 100.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The body of dynamics.RemoveDynamics (the capture already checked by `check_model`).
+
+    Args:
+        model: removal network F.
+        capture: (F, V, 3) world-space capture, the network's topology, or the whole mesh when
+            `region` gives the region's vertices in it.
+        skull: (F, 4, 4) skull-to-world.
+        fps: frame rate of the capture.
+        region: (V_region,) vertex indices of the network's region in `capture`, or None.
+        constraint_weight: weight of the sample offsets against smoothness in propagation.
+    Returns:
+        quasistatic (F, V, 3) float32 world space, cm, and the removed offsets (F, V, 3)
+        float64 in the skull frame, cm (0 outside the region).
+    """
+    work = capture if region is None else select_region(capture, region)
+    if region is not None and work.faces.size and len(np.unique(work.faces)) < work.num_vertices:
+        work = dataclasses.replace(work, faces=np.zeros((0, 3), np.int32))  # a point subset of the
+        # mesh (trained on io.LoadFaceModel max_vertices): neighbours from the rest shape, as in training
+    ids = model.normalization["sample_ids"]
+    sample = predict_removal(model, work.vertices, skull, fps)
+    weights = cached_interpolation_matrix(model_edges(work, model), work.num_vertices, ids,
+                                          constraint_weight=constraint_weight)
+    full = propagate_offsets(weights, sample)  # (F, V, 3), skull frame
+    world = rotate_elementwise(skull[:, :3, :3], full)
+    quasi = (work.vertices.astype(np.float64) - world).astype(np.float32)
+    if region is not None:  # back into the whole mesh; outside the region nothing changes
+        quasi_whole = np.array(capture.vertices, np.float32)
+        quasi_whole[:, region] = quasi
+        full_whole = np.zeros(capture.vertices.shape)
+        full_whole[:, region] = full
+        quasi, full = quasi_whole, full_whole
+    return quasi, full
 
 
 class RemoveDynamics(Node):
@@ -339,22 +411,7 @@ class RemoveDynamics(Node):
         region = check_model(model, "removal", capture, fps, whole=True)
         if capture.num_frames < 2:
             raise InputError("capture", f"expected at least 2 frames, found {capture.num_frames}")
-        work = capture if region is None else select_region(capture, region)
-        if region is not None and work.faces.size and len(np.unique(work.faces)) < work.num_vertices:
-            work = dataclasses.replace(work, faces=np.zeros((0, 3), np.int32))  # a point subset of the
-            # mesh (trained on io.LoadFaceModel max_vertices): neighbours from the rest shape, as in training
-        ids = model.normalization["sample_ids"]
-        sample = predict_removal(model, work.vertices, skull.matrices, fps)
-        weights = cached_interpolation_matrix(model_edges(work, model), work.num_vertices, ids,
-                                              constraint_weight=self.params.constraint_weight)
-        full = propagate_offsets(weights, sample)  # (F, V, 3), skull frame
-        world = rotate_elementwise(skull.matrices[:, :3, :3], full)
-        quasi = (work.vertices.astype(np.float64) - world).astype(np.float32)
-        if region is not None:  # back into the whole mesh; outside the region nothing changes
-            quasi_whole = np.array(capture.vertices, np.float32)
-            quasi_whole[:, region] = quasi
-            full_whole = np.zeros(capture.vertices.shape)
-            full_whole[:, region] = full
-            quasi, full = quasi_whole, full_whole
+        quasi, full = remove_dynamics(model, capture, skull.matrices, fps, region,
+                                      constraint_weight=self.params.constraint_weight)
         return {"quasistatic": dataclasses.replace(capture, vertices=quasi, fps=fps),
                 "offsets": dataclasses.replace(capture, vertices=full.astype(np.float32), fps=fps)}

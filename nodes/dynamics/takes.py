@@ -1,0 +1,457 @@
+"""Train the removal network F on a day of one's own capture (Zoss et al. 2020, section 5).
+
+The paper's method: capture the actor holding expressions while walking, running, jumping and on
+an oscillating platform, train F on those takes with the moving-average target (eq. 5), apply
+it to the actor's performances. Here:
+
+- `dynamics.LoadTakes` reads a glob or a folder of takes into one `nodegraph.takes.Takes` value
+  (each take its own length and frame rate): NPZ (`vertices [F,V,3]`, `faces`, `fps`, optional
+  `rigid [F,4,4]` skull-to-world), USD, numbered OBJ/PLY (`take_a.0001.obj`, ... = one take).
+  Each take is read through the run's cache, keyed by its files' contents: adding a take to
+  the folder re-reads only that one.
+- `dynamics.StabilizeTakes` gives every take a skull motion: the tracked `rigid` where the file
+  has one, else mode pursuit (`nodes.stabilize`), expressed in the frame of the subject's
+  neutral by a robust rigid fit of the take's stabilized median shape onto the neutral (so
+  every take, and the network, share one skull frame: the neutral's).
+- `dynamics.TrainRemovalTakes` trains F with the moving-average target on the held-expression
+  takes (a name pattern; the rest, e.g. dialog, are not used), optionally on one vertex group
+  (the network then records it and also cleans whole captures), and reports the training loss
+  per epoch and a held-out take's error against its own moving-average target.
+- `dynamics.SaveReport` writes that report (JSON) and shows it as a table.
+
+Nothing depends on a vertex count or order: samples are farthest-point samples of the neutral,
+the skull landmarks come from its bounding box, the propagation uses the takes' faces.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import glob
+import json
+import os
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from nodegraph import (SEQUENCE, Files, In, InputError, JsonValue, MeshSequence, Node, NodeParams, Out,
+                       Param, RigidSequence, Table, TorchModel)
+from nodegraph.files import file_sha256, files_value, write_text_atomic
+from nodegraph.takes import Takes, cached_take
+
+from ..geometry.rigid import fit_rigid, stabilize_vertices
+from ..io.mesh import load_mesh_sequence, mesh_frame_count
+from .evaluate import rms_distance
+from .features import moving_average_target, select_samples, window_reach
+from .removal import HALO, fit_removal, remove_dynamics
+
+__all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "neutral_frame", "LoadTakes", "StabilizeTakes",
+           "TrainRemovalTakes", "SaveReport"]
+
+TAKE_SUFFIXES = (".npz", ".usd", ".usda", ".usdc", ".obj", ".ply")
+_NUMBERED = re.compile(r"^(?P<head>.*?)(?P<number>\d+)\.(?P<ext>obj|ply)$", re.IGNORECASE)
+
+
+def find_takes(spec: str) -> list[tuple[str, str, list[Path]]]:
+    """The takes a glob or folder names: (name, path for `io.load_mesh_sequence`, files).
+
+    A folder stands for every take file in it. NPZ and USD files are one take each (name: the
+    file stem); numbered OBJ/PLY files with the same name before the number are one take
+    (`take_a.0001.obj`, `take_a.0002.obj` -> 'take_a', read as `take_a.%04d.obj`).
+
+    Raises:
+        InputError: ("captures") nothing found, a file of another kind in a glob, an OBJ/PLY
+            without a frame number, or two takes of one name.
+    """
+    if os.path.isdir(spec):
+        files = sorted(p for p in Path(spec).iterdir() if p.is_file() and p.suffix.lower() in TAKE_SUFFIXES)
+    else:
+        files = sorted(Path(p) for p in glob.glob(spec) if os.path.isfile(p))
+        other = [str(p) for p in files if p.suffix.lower() not in TAKE_SUFFIXES]
+        if other:
+            raise InputError("captures", f"expected take files ({', '.join(TAKE_SUFFIXES)}), found "
+                                         f"{other[:3]} matching '{spec}'")
+    if not files:
+        raise InputError("captures", f"expected take files matching '{spec}' (a glob such as "
+                                     f"'takes/take_*.npz', or a folder), found none")
+    takes: dict[str, tuple[str, list[Path]]] = {}
+    numbered: dict[tuple[str, str, int, str], list[Path]] = {}
+    for path in files:
+        if path.suffix.lower() in (".obj", ".ply"):
+            match = _NUMBERED.match(path.name)
+            if not match:
+                raise InputError("captures", f"expected numbered OBJ/PLY files (one per frame, e.g. "
+                                             f"'take_a.0001.obj'), found '{path}'")
+            key = (str(path.parent), match["head"], len(match["number"]), match["ext"])
+            numbered.setdefault(key, []).append(path)
+            continue
+        name = path.stem
+        if name in takes:
+            raise InputError("captures", f"expected one take per name, found '{takes[name][1][0]}' and '{path}'")
+        takes[name] = (str(path), [path])
+    for (folder, head, width, ext), paths in numbered.items():
+        name = head.rstrip("._- ") or Path(folder).name
+        if name in takes:
+            raise InputError("captures", f"expected one take per name, found two named '{name}' "
+                                         f"('{takes[name][1][0]}' and '{paths[0]}')")
+        takes[name] = (os.path.join(folder, f"{head}%0{width}d.{ext}"), paths)
+    return [(name, path, files) for name, (path, files) in sorted(takes.items())]
+
+
+def read_take(name: str, path: str, fps: float) -> tuple[MeshSequence, RigidSequence | None]:
+    """Read one take (all its frames) and, for NPZ, its `rigid` skull-to-world transforms.
+
+    Args:
+        name: the take's name (for messages).
+        path: an NPZ/USD file or a numbered OBJ/PLY pattern.
+        fps: frames per second for files without one (NPZ without `fps`, OBJ/PLY); 0 = such a
+            file is an error.
+    Raises:
+        InputError: ("captures") unreadable, fewer than 2 frames, no frame rate, or a `rigid`
+            array that is not (F, 4, 4) finite.
+    """
+    where = f"take '{name}' ('{path}')"
+    count = mesh_frame_count(path)
+    try:
+        mesh = load_mesh_sequence(path, range(count) if count else range(0, 1), fps=fps or 30.0)
+    except InputError as err:
+        raise InputError("captures", f"{where}: {err.message}") from err
+    if mesh.num_frames < 2:
+        raise InputError("captures", f"{where}: expected at least 2 frames, found {mesh.num_frames}")
+    rigid = None
+    if path.lower().endswith(".npz"):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                has_fps = "fps" in data.files
+                if "rigid" in data.files:
+                    rigid = np.asarray(data["rigid"], np.float64)
+        except (OSError, ValueError, zipfile.BadZipFile) as err:
+            raise InputError("captures", f"{where}: expected a readable NPZ, found {err}") from err
+        if rigid is not None and (rigid.shape != (mesh.num_frames, 4, 4) or not np.isfinite(rigid).all()):
+            raise InputError("captures", f"{where}: expected 'rigid' of shape ({mesh.num_frames}, 4, 4), "
+                                         f"finite, found shape {rigid.shape}")
+    else:
+        has_fps = path.lower().endswith((".usd", ".usda", ".usdc"))
+    if not has_fps and not fps > 0:
+        raise InputError("fps", f"{where}: expected a frame rate in the file ('fps') or the fps "
+                                f"parameter, found neither")
+    return mesh, (RigidSequence(matrices=rigid) if rigid is not None else None)
+
+
+class LoadTakes(Node):
+    """Read a day of capture: every take of a glob or folder, each its own length and frame rate."""
+
+    type_name = "dynamics.LoadTakes"
+    version = 1
+    kind = SEQUENCE
+
+    class Params(NodeParams):
+        captures: str = Param(..., input_file=True, description="Glob (takes/take_*.npz) or folder of takes: "
+                              "NPZ (vertices [F,V,3], faces, fps, optional rigid [F,4,4] skull-to-world), "
+                              "USD, or numbered OBJ/PLY (take_a.0001.obj, ... = one take).")
+        fps: float = Param(0.0, ge=0, description="Frames per second of takes whose files carry none "
+                           "(NPZ without fps, OBJ/PLY); 0 = such a take is an error (a guessed rate "
+                           "would scale every velocity the network sees).")
+
+    takes = Out(Takes, doc="The takes, sorted by name; one topology.")
+
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        try:
+            return [f for _, _, files in find_takes(self.params.captures) for f in files]
+        except InputError:
+            return []  # run() reports it
+
+    def key_params(self) -> dict:
+        key = super().key_params()
+        try:  # the names are part of the value; the files' contents are keyed by input_files
+            key["take_names"] = [name for name, _, _ in find_takes(self.params.captures)]
+        except InputError:
+            key["take_names"] = []
+        return key
+
+    def run(self) -> dict:
+        p = self.params
+        found = find_takes(p.captures)
+        root = getattr(self, "cache_root", None)
+        from nodegraph.cache import Cache
+
+        cache = Cache(root) if root else None
+        reader = f"{self.type_name}/{self.version}/{self.code_hash()}/fps={p.fps!r}"
+        names, meshes, skulls = [], [], []
+        for i, (name, path, files) in enumerate(found):
+            mesh, skull = cached_take([file_sha256(f) for f in files], reader,
+                                      lambda: read_take(name, path, p.fps), cache)
+            names.append(name)
+            meshes.append(mesh)
+            skulls.append(skull)
+            self.progress((i + 1) / len(found), f"take {name}: {mesh.num_frames} frames at {mesh.fps:g} fps"
+                          f"{'' if skull is not None else ', no rigid'}")
+        try:
+            return {"takes": Takes.from_sequences(names, meshes, skulls)}
+        except ValueError as err:
+            raise InputError("captures", str(err)) from err
+
+
+def neutral_frame(median_shape: np.ndarray, neutral: np.ndarray, ids: np.ndarray | None = None,
+                  rounds: int = 20) -> np.ndarray:
+    """Robust rigid map (4, 4) from a take's stabilized shape onto the neutral (`y = A x`).
+
+    Iteratively reweighted Kabsch with Cauchy weights at half the median residual, so the parts
+    the take's expression moves away from the neutral (half the face in a smile) count little:
+    on generated 400-point takes the skull frame lands within 0.014 cm (smile), 0.008 cm (jaw
+    open) and 0.005 cm (neutral) of the truth, median over vertices and frames.
+
+    Args:
+        median_shape: (V, 3) the take's median shape in its own skull frame, cm.
+        neutral: (V, 3) the subject's neutral, cm.
+        ids: vertices to align (e.g. a region the expressions leave still), None = all.
+        rounds: reweighting rounds.
+    """
+    x, y = np.asarray(median_shape, np.float64), np.asarray(neutral, np.float64)
+    if ids is not None:
+        x, y = x[ids], y[ids]
+    weights = np.ones(len(x))
+    for _ in range(rounds):
+        fit = fit_rigid(x, y, weights)
+        residual = np.linalg.norm(x @ fit.rotation.T + fit.translation - y, axis=1)
+        scale = 0.5 * np.median(residual) + 1e-6
+        weights = 1.0 / (1.0 + (residual / scale) ** 2)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = fit.rotation, fit.translation
+    return out
+
+
+class StabilizeTakes(Node):
+    """Give every take a skull motion in the neutral's frame: its tracked rigid, else mode pursuit."""
+
+    type_name = "dynamics.StabilizeTakes"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        group: str = Param("", description="Vertex group mode pursuit and the fit onto the neutral align "
+                           "('' = all vertices, robustly weighted; a region that moves with the skull, "
+                           "e.g. forehead and nose, is better when the takes have one).")
+        max_vertices: int = Param(2000, ge=10, description="Mode pursuit's energy vertices "
+                                  "(farthest-point sampled): its default, enough for a head.")
+        restabilize: bool = Param(False, description="Stabilize every take, ignoring tracked rigid "
+                                  "transforms (e.g. when they are not in the neutral's frame).")
+
+    takes = In(Takes, doc="The takes (dynamics.LoadTakes).")
+    neutral = In(MeshSequence, per_frame=False, doc="The subject's neutral (1 frame, the takes' topology "
+                                                   "and vertex order): defines the skull frame.")
+    stabilized = Out(Takes, doc="The takes, each with skull-to-world transforms (skull frame = the neutral's).")
+    report = Out(JsonValue, doc="Per take: 'tracked' or 'mode pursuit' and the fit's median residual (cm).")
+
+    def run(self, takes: Takes, neutral: MeshSequence) -> dict:
+        p = self.params
+        rest = check_neutral(neutral, takes)
+        ids = None
+        if p.group:
+            if p.group not in takes.groups:
+                raise InputError("group", f"expected a vertex group '{p.group}' of the takes, found "
+                                          f"{sorted(takes.groups) or 'none'}")
+            ids = np.unique(np.asarray(takes.groups[p.group], np.int64))
+        todo = [i for i in range(takes.num_takes) if p.restabilize or not takes.has_rigid[i]]
+        skulls, report = [], {}
+        for i in range(takes.num_takes):
+            mesh = takes.take(i)
+            if i not in todo:
+                skulls.append(takes.skull(i))
+                report[takes.names[i]] = {"skull": "tracked"}
+                continue
+            from ..stabilize.mode_pursuit import mode_pursuit
+
+            self.progress(todo.index(i) / len(todo), f"mode pursuit on take {takes.names[i]}")
+            result = mode_pursuit(mesh.vertices, vertex_ids=ids, max_vertices=p.max_vertices,
+                                  device=self.device)
+            matrices = np.asarray(result.matrices, np.float64)
+            shape = np.median(stabilize_vertices(mesh.vertices, matrices), axis=0)
+            to_neutral = neutral_frame(shape, rest, ids)
+            matrices = matrices @ np.linalg.inv(to_neutral)  # skull frame := the neutral's
+            residual = np.linalg.norm(shape @ to_neutral[:3, :3].T + to_neutral[:3, 3] - rest, axis=1)
+            report[takes.names[i]] = {"skull": "mode pursuit",
+                                      "median_residual_to_neutral_cm": round(float(np.median(residual)), 5)}
+            skulls.append(RigidSequence(matrices=matrices))
+        out = Takes.from_sequences(takes.names, [takes.take(i) for i in range(takes.num_takes)], skulls)
+        return {"stabilized": out, "report": JsonValue(report)}
+
+
+def check_neutral(neutral: MeshSequence, takes: Takes) -> np.ndarray:
+    """The neutral's (V, 3) float64 vertices, or InputError ("neutral") when it is not one frame of
+    the takes' vertex count."""
+    if neutral.num_frames != 1 or neutral.num_vertices != takes.num_vertices:
+        raise InputError("neutral", f"expected one frame of {takes.num_vertices} vertices (the takes' "
+                                    f"topology and vertex order), found {neutral.num_frames} frames of "
+                                    f"{neutral.num_vertices} vertices")
+    return neutral.vertices[0].astype(np.float64)
+
+
+class TrainRemovalTakes(Node):
+    """Train the removal network F on held-expression takes with the moving-average target (eq. 5)."""
+
+    type_name = "dynamics.TrainRemovalTakes"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        held: str = Param("*", description="Name pattern (fnmatch) of the held-expression takes F trains "
+                          "on; the moving-average target assumes the expression is held, so dialog "
+                          "takes are left out.")
+        held_out: str = Param("", description="Take kept out of training, whose error against its own "
+                              "moving-average target is reported; '' = the last held-expression take "
+                              "(by name) when there are at least two, '-' = none.")
+        region: str = Param("", description="Vertex group of the takes to train on ('' = all vertices); "
+                            "the network records it and then also cleans whole captures.")
+        target_window_s: float = Param(0.1, gt=0, description="Half-width of the moving average (s): "
+                                       "0.1 s averages at least a whole period of the slowest skin "
+                                       "modes (7.5 Hz and up) at any frame rate (the paper: 10 frames).")
+        num_samples: int = Param(344, ge=1, description="Skin samples (farthest-point sampling of the "
+                                 "neutral): the paper's count.")
+        window: int = Param(10, ge=1, description="Half-size of the descriptor windows (samples).")
+        feature_fps: float = Param(120.0, gt=0, description="Sample rate of the windows (1/s); takes at "
+                                   "other rates are resampled, up to 1.3 x this rate.")
+        hidden: list[int] = Param([128, 128], description="Hidden layer widths.")
+        epochs: int = Param(40, ge=1, description="Passes over the training rows (paper: 250).")
+        batch_size: int = Param(10000, ge=1, description="Rows per Adam step.")
+        lr: float = Param(1e-3, gt=0, description="Adam learning rate.")
+        max_rows: int = Param(200000, ge=1, description="(frame, sample) rows drawn for training.")
+        seed: int | None = Param(None, ge=0, description="Seed of the rows, batch order and weights; none = "
+                                 "derived from the task's cache key; an integer pins training.")
+
+    takes = In(Takes, doc="Takes with skull motion (dynamics.StabilizeTakes).")
+    neutral = In(MeshSequence, per_frame=False, doc="The subject's neutral (1 frame, the takes' topology).")
+    model = Out(TorchModel, doc="Removal network F (dynamics.MLP).")
+    report = Out(JsonValue, doc="Takes used, rows, loss per epoch, the held-out take's error.")
+
+    def run(self, takes: Takes, neutral: MeshSequence) -> dict:
+        p = self.params
+        rest = check_neutral(neutral, takes)
+        if any(not takes.has_rigid[i] for i in range(takes.num_takes)):
+            missing = [n for i, n in enumerate(takes.names) if not takes.has_rigid[i]]
+            raise InputError("takes", f"expected a skull motion for every take (dynamics.StabilizeTakes), "
+                                      f"found none for {missing}")
+        held = [i for i, name in enumerate(takes.names) if fnmatch.fnmatchcase(name, p.held)]
+        if not held:
+            raise InputError("held", f"expected takes matching '{p.held}', found none among {takes.names}")
+        if p.held_out == "-":
+            out = None
+        elif p.held_out:
+            if p.held_out not in takes.names:
+                raise InputError("held_out", f"expected one of the takes {takes.names}, found '{p.held_out}'")
+            out = takes.index(p.held_out)
+        else:
+            out = held[-1] if len(held) > 1 else None
+        train = [i for i in held if i != out]
+        if not train:
+            raise InputError("held_out", f"expected a take left to train on, found only '{takes.names[out]}'")
+        region_ids = None
+        if p.region:
+            if p.region not in takes.groups:
+                raise InputError("region", f"expected a vertex group '{p.region}' of the takes, found "
+                                           f"{sorted(takes.groups) or 'none'}")
+            region_ids = np.unique(np.asarray(takes.groups[p.region], np.int64))
+        cut = (lambda v: v) if region_ids is None else (lambda v: v[:, region_ids])
+        rest_part = rest if region_ids is None else rest[region_ids]
+        samples = select_samples(rest_part, p.num_samples)
+        for i in train + ([out] if out is not None else []):
+            if window_reach(p.window, float(takes.fps[i]), p.feature_fps) > HALO:
+                raise InputError("feature_fps", f"take '{takes.names[i]}' at {takes.fps[i]:g} fps: expected "
+                                                f"a frame rate up to {(HALO - 3) * p.feature_fps / p.window:g} "
+                                                f"fps for window {p.window} at {p.feature_fps:g} fps")
+        seed = self.seed if p.seed is None else p.seed
+        # one moving-average half-width per take, in its frames (the takes' rates differ)
+        windows = [max(1, int(round(p.target_window_s * float(takes.fps[i])))) for i in train]
+        vertices = [cut(takes.take(i).vertices) for i in train]
+        params = _RemovalParams(target="moving_average", window=p.window, feature_fps=p.feature_fps,
+                                hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
+                                max_rows=p.max_rows)
+        model, report = fit_removal(params, vertices, [float(takes.fps[i]) for i in train],
+                                    [takes.skull(i).matrices for i in train], None, [None] * len(train),
+                                    rest_part, samples, seed, self.device, self.progress, windows)
+        model.config["target"] = "moving_average"
+        model.config["target_window_s"] = p.target_window_s
+        if region_ids is not None:
+            model.config.update(region=p.region, whole_vertices=int(takes.num_vertices))
+            model.normalization["region_ids"] = region_ids
+        report = {"takes": [takes.names[i] for i in train], "frames": int(sum(len(v) for v in vertices)),
+                  "loss_per_epoch": report["losses"], "final_loss": report["final_loss"],
+                  "rows": report["rows"], "seconds": report["seconds"]}
+        if out is not None:
+            report["held_out"] = held_out_error(model, takes, out, p.target_window_s, region_ids)
+        return {"model": model, "report": JsonValue(report)}
+
+
+class _RemovalParams(NodeParams):
+    """The settings `fit_removal` reads (dynamics.TrainRemoval's, as TrainRemovalTakes sets them)."""
+
+    target: str = "moving_average"
+    window: int = 10
+    feature_fps: float = 120.0
+    target_window: int = 10
+    hidden: list[int] = [128, 128]
+    epochs: int = 40
+    batch_size: int = 10000
+    lr: float = 1e-3
+    max_rows: int = 200000
+
+
+def held_out_error(model: TorchModel, takes: Takes, index: int, target_window_s: float,
+                   region_ids: np.ndarray | None) -> dict:
+    """A take's RMS distance (mm) to its own moving-average target before and after removal.
+
+    Frames within the moving average's half-width of either end are left out (the average is
+    not defined there); over the network's region when it records one.
+    """
+    mesh, skull = takes.take(index), takes.skull(index).matrices
+    fps = float(takes.fps[index])
+    window = max(1, int(round(target_window_s * fps)))
+    work = mesh.vertices if region_ids is None else mesh.vertices[:, region_ids]
+    target = moving_average_target(work, skull, window=window)
+    quasi, _ = remove_dynamics(model, mesh, skull, fps, region_ids)
+    if region_ids is not None:
+        quasi = quasi[:, region_ids]
+    keep = slice(window, len(work) - window)
+    before = rms_distance(work[keep], target[keep])
+    after = rms_distance(quasi[keep], target[keep])
+    return {"take": takes.names[index], "frames": int(len(work) - 2 * window),
+            "rms_before_mm": round(10 * before, 4), "rms_after_mm": round(10 * after, 4),
+            "reduction_pct": round(100 * (1 - after / before), 2) if before > 0 else 0.0}
+
+
+class SaveReport(Node):
+    """Write a training report (JSON) and show its numbers as a table."""
+
+    type_name = "dynamics.SaveReport"
+    version = 1
+    kind = SEQUENCE
+    writes_files = True
+
+    class Params(NodeParams):
+        path: str = Param("out/dynamics/train_report.json", output_file=True,
+                          description="Output JSON file ('' = write nothing, only the table).")
+
+    report = In(JsonValue, doc="The report (dynamics.TrainRemovalTakes).")
+    files = Out(Files, doc="The written file.")
+    table = Out(Table, doc="The scalar entries, the held-out take's error flattened ('held_out.rms_after_mm').")
+
+    def run(self, report: JsonValue) -> dict:
+        rows = []
+        for key, value in report.value.items():
+            if isinstance(value, dict):
+                rows += [[f"{key}.{k}", v] for k, v in value.items() if not isinstance(v, (list, dict))]
+            elif isinstance(value, list):
+                if value and all(isinstance(v, (int, float)) for v in value):
+                    rows.append([f"{key} (first, last)", f"{value[0]:g}, {value[-1]:g}"])
+                else:
+                    rows.append([key, ", ".join(str(v) for v in value)])
+            else:
+                rows.append([key, value])
+        paths = []
+        if self.params.path:
+            write_text_atomic(self.params.path, json.dumps(report.value, indent=2, sort_keys=True) + "\n")
+            paths = [self.params.path]
+        return {"files": files_value(paths), "table": Table(["entry", "value"], rows)}
