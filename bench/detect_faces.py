@@ -1,6 +1,6 @@
 """Face detection cost per frame at 1080p (whole frame vs image pyramid) and the hard cases.
 
-Run: nice python bench/detect_faces.py [--repeat 3] [--threads 2] [--batch 1] [--no-cases]
+Run: nice python bench/detect_faces.py [--repeat 3] [--threads 2] [--batch 1] [--no-cases] [--no-video]
 
 Timings (best of `--repeat` runs after one warm-up, ms per frame: the least disturbed by other
 work on a shared machine) on a 1920 x 1080 frame
@@ -15,6 +15,19 @@ Then, unless `--no-cases`, every case of `tests/nodes/landmarks/cases.py` at 4 p
 detection rate (chosen face within one eye distance of the truth) and the mean 68-point error
 in % of the eye distance (eye centres), on the astronaut and the camera man (grey).
 CUDA rows appear when a GPU is present.
+
+Then, unless `--no-video`, two 1920 x 1080 videos of the astronaut (`cases.make_video`: moved,
+zoomed and rolled at once, the reference points moved with the image), "slow" (40 frames: eye
+distance 45-55 px, roll +-10 deg, 190 px across, a 22 px bob) and "fast" (30 frames: 45-70 px,
++-20 deg, 580 px across, a 54 px bob), each read two ways:
+  track               `landmarks.TrackFaces` (`face_tracker.track_faces`): the detector on the
+                      first frame, then each crop from the previous frames' points
+  detect every frame  `landmarks.DetectFaces` + `FaceLandmarks` (pyramid min_face 40, roll passes 3)
+with ms per frame (best of `--repeat` runs of the whole video, after one warm-up), the frames
+where the detector ran, extra face-mesh reads, failed frames (presence below 0.5), the mean and
+the largest 68-point error and the jitter: the mean frame-to-frame change of the 68 points'
+error (the truth moves smoothly, so this is what shakes on screen), both in % of the eye
+distance; failed frames are left out of both.
 """
 
 from __future__ import annotations
@@ -38,7 +51,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--batch", type=int, default=1, help="frames per detector call")
-    parser.add_argument("--no-cases", action="store_true", help="timings only")
+    parser.add_argument("--no-cases", action="store_true", help="no hard cases")
+    parser.add_argument("--no-video", action="store_true", help="no video tracking")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -70,6 +84,8 @@ def main() -> None:
     print(f"\n| what | device | ms/frame | note |\n|---|---|---|---|")
     for name, device, ms, note in rows:
         print(f"| {name} | {device} | {ms:.0f} | {note} |")
+    if not args.no_video:
+        video_rows(args.repeat)
     if args.no_cases:
         return
     mesh = load_face_mesh()
@@ -92,6 +108,65 @@ def main() -> None:
                 errors.append(error_percent(points[0].numpy()[MEDIAPIPE_TO_68], c.points[MEDIAPIPE_TO_68], c.eye))
             text = " ".join(f"{e:.1f}" for e in errors) or "-"
             print(f"| {photo} | {name} | {found}/{len(SHIFTS)} | {text} |", flush=True)
+
+
+VIDEOS = {"slow": dict(count=40, eye_px=(45.0, 55.0), roll_deg=10.0, sweep=(0.4, 0.5), bob=0.02),
+          "fast": dict(count=30, eye_px=(45.0, 70.0), roll_deg=20.0, sweep=(0.3, 0.6), bob=0.05)}
+"""`cases.make_video` arguments of the two bench videos."""
+
+
+def video_stats(points: np.ndarray, truth: np.ndarray, eye: np.ndarray, ok: np.ndarray) -> tuple[float, float, float]:
+    """Mean and largest 68-point error and the jitter (mean frame-to-frame change of the error),
+    % of the eye distance, over the frames `ok` (F,) bool (jitter: pairs of consecutive ok frames)."""
+    from nodes.landmarks.correspondence import MEDIAPIPE_TO_68
+
+    error = points[:, MEDIAPIPE_TO_68] - truth[:, MEDIAPIPE_TO_68]
+    per_frame = np.linalg.norm(error, axis=-1).mean(-1) / eye * 100
+    pairs = ok[1:] & ok[:-1]
+    jitter = np.linalg.norm(np.diff(error, axis=0), axis=-1).mean(-1)[pairs] / eye[1:][pairs] * 100
+    return float(per_frame[ok].mean()), float(per_frame[ok].max()), float(jitter.mean())
+
+
+def video_rows(repeat: int) -> None:
+    """Print tracking against detecting every frame on the bench videos (see the module docstring)."""
+    from cases import make_video
+
+    from nodes.landmarks.face_tracker import track_faces
+    from nodes.landmarks.network import detect_faces, load_face_detector, load_face_mesh, upright_face_landmarks
+
+    detector, mesh = load_face_detector(), load_face_mesh()
+
+    def every_frame(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        points, presence = np.full((len(frames), 468, 2), np.nan), np.zeros(len(frames))
+        for f in range(len(frames)):
+            image = torch.from_numpy(frames[f:f + 1])
+            det = detect_faces(image, detector, min_face_px=40.0)
+            if det.found[0]:
+                with torch.no_grad():
+                    pts, pres, _ = upright_face_landmarks(image, det.boxes, mesh, det.rolls, 3)
+                points[f], presence[f] = pts[0].double().numpy(), float(pres[0])
+        return points, presence
+
+    print("\n| video | how | ms/frame | detector runs | extra mesh reads | failed | error % (mean, max) | "
+          "jitter % |\n|---|---|---|---|---|---|---|---|")
+    for name, kw in VIDEOS.items():
+        video = make_video("astronaut", **kw)
+        frames = video.frames
+        for how in ("track", "track, no iris", "detect every frame"):
+            if how.startswith("track"):
+                iris = how == "track"
+                ms = best_ms(lambda: track_faces(frames, with_iris=iris), repeat) / len(frames)
+                out = track_faces(frames, with_iris=iris)
+                points, ok = out.points, ~out.failed
+                note = (int(out.detected.sum()), int(out.rereads.sum()))
+            else:
+                ms = best_ms(lambda: every_frame(frames), max(1, repeat - 1)) / len(frames)
+                points, presence = every_frame(frames)
+                ok = presence >= 0.5
+                note = (len(frames), "-")
+            mean, worst, jitter = video_stats(points, video.points, video.eye, ok)
+            print(f"| {name} ({len(frames)} frames) | {how} | {ms:.1f} | {note[0]} | {note[1]} | {int((~ok).sum())} | "
+                  f"{mean:.2f}, {worst:.1f} | {jitter:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

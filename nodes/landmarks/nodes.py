@@ -321,8 +321,10 @@ class TrackFaces(Node):
                                    "taken for it); after them the choice `face` is made afresh.")
         reread: float = Param(0.05, ge=0, description="Crop movement (the larger of the centre's shift in crop "
                               "sides, |log| of the side ratio and the roll change in radians) above which a "
-                              "frame is read again in the crop of its own points: an off-centre face is read "
-                              "less well; 0.05 re-read 1 of 30 frames of a face crossing a 1080p frame in 1 s.")
+                              "frame is read again (twice at most) in the crop of its own points: an off-centre "
+                              "face is read less well. 0.05 re-reads only fast moves (1 frame of "
+                              "bench/detect_faces.py's fast video); 0 re-reads every frame, which shakes less "
+                              "(jitter 0.8 -> 0.3% of the eye distance on its slow video) at about 3 times the cost.")
         velocity: float = Param(1.0, ge=0, le=1, description="How far each crop is moved on by the face's "
                                 "motion over the last two frames (1 = constant velocity, 0 = where the last "
                                 "frame's points were): a crop that lags a moving face drifts off it.")
@@ -339,8 +341,7 @@ class TrackFaces(Node):
     landmarks468 = Out(Landmarks2D, doc="(F, 468, 2) face-mesh points, pixels (NaN where failed); "
                        "confidence = presence.")
     landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence.")
-    presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (of the best detection tried where "
-                   "failed; 0 where none).")
+    presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (0 where failed).")
     iris = Out(Landmarks2D, doc="(F, 10, 2) iris points, pixels (as `landmarks.FaceLandmarks`).")
 
     def run(self, images: ImageSequence) -> dict[str, object]:
@@ -360,7 +361,7 @@ class TrackFaces(Node):
                 "reasons": ParamSequence(out.reasons.astype(np.float32)[:, None], ["reason"]),
                 "landmarks468": Landmarks2D(points, np.repeat(confidence, 468, 1)),
                 "landmarks68": Landmarks2D(points[:, MEDIAPIPE_TO_68], np.repeat(confidence, 68, 1)),
-                "presence": ParamSequence(out.presence.astype(np.float32)[:, None], ["presence"]),
+                "presence": ParamSequence(confidence, ["presence"]),
                 "iris": Landmarks2D(out.iris.reshape(-1, 10, 2).astype(np.float32), np.repeat(confidence, 10, 1))}
 
 

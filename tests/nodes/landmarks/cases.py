@@ -180,15 +180,15 @@ class VideoCase(NamedTuple):
 
 
 def video_path(count: int, *, eye_px: tuple[float, float] = (45.0, 70.0), roll_deg: float = 20.0,
-               sweep: tuple[float, float] = (0.3, 0.6)) -> list[dict]:
+               sweep: tuple[float, float] = (0.3, 0.6), bob: float = 0.05) -> list[dict]:
     """`make_case` arguments of a smooth move: the face crosses the frame left to right over `sweep`
-    (fractions of the width) with a slow vertical bob, zooms between the two eye distances and
-    rolls by up to +-`roll_deg` degrees (a half sine each, at different rates, so all three
-    change at once)."""
+    (fractions of the width) while it bobs up and down by `bob` (a fraction of the height, 1.5
+    periods), zooms from the first eye distance to the second and back (sine squared) and rolls
+    by up to +-`roll_deg` degrees (one sine period), so all of them change at once."""
     t = np.linspace(0.0, 1.0, count)
     return [dict(eye_px=float(eye_px[0] + (eye_px[1] - eye_px[0]) * np.sin(np.pi * s) ** 2),
                  angle_deg=float(roll_deg * np.sin(2 * np.pi * s)),
-                 at=(float(sweep[0] + (sweep[1] - sweep[0]) * s), float(0.5 + 0.05 * np.sin(3 * np.pi * s))))
+                 at=(float(sweep[0] + (sweep[1] - sweep[0]) * s), float(0.5 + bob * np.sin(3 * np.pi * s))))
             for s in t]
 
 
