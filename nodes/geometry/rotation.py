@@ -13,7 +13,7 @@ Conventions:
       `R = Rz(c) @ Ry(b) @ Rx(a)` (the synthetic head motion, the reports' plots); intrinsic
       `"YXZ"` is `R = Ry(a) @ Rx(b) @ Rz(c)` (ARKit's yaw, pitch, roll). Output ranges: the
       first and last angle in [-pi, pi], the middle one in [-pi/2, pi/2]; at gimbal lock
-      (middle angle +-pi/2) the first angle (extrinsic) or last (intrinsic) is set to 0.
+      (middle angle +-pi/2) the third angle is set to 0, as scipy does.
 
 This module imports numpy only; the torch functions import torch when called, so area
 modules can import it at module level and stay light. Tested against
@@ -378,7 +378,7 @@ def rotmat_to_euler(rot: np.ndarray, order: str = "xyz") -> np.ndarray:
         (..., 3) float64 radians: first and last in [-pi, pi], middle in [-pi/2, pi/2].
     Note:
         At gimbal lock (`cos(middle) < 1e-9`) only the sum or difference of the outer angles
-        is defined: the first applied rotation's angle is set to 0 (as scipy does).
+        is defined: the third angle of the order is set to 0 (as scipy does).
     """
     axes, intrinsic = _euler_order(order)
     rot = np.asarray(rot, np.float64)
@@ -387,8 +387,12 @@ def rotmat_to_euler(rot: np.ndarray, order: str = "xyz") -> np.ndarray:
     r = rot[..., p, :][..., :, p]  # = Rz(e c) Ry(e b) Rx(e a)
     cos_b = np.hypot(r[..., 0, 0], r[..., 1, 0])
     b = np.arctan2(-r[..., 2, 0], cos_b)
-    locked = cos_b < 1e-9
-    a = np.where(locked, 0.0, np.arctan2(r[..., 2, 1], r[..., 2, 2]))
-    c = np.where(locked, np.arctan2(-r[..., 0, 1], r[..., 1, 1]), np.arctan2(r[..., 1, 0], r[..., 0, 0]))
+    locked = cos_b < 1e-9  # only a + c (or a - c) is defined: the third named angle is 0
+    if intrinsic:  # the third named angle is a: R' = Rz(c) Ry(b)
+        a = np.where(locked, 0.0, np.arctan2(r[..., 2, 1], r[..., 2, 2]))
+        c = np.where(locked, np.arctan2(-r[..., 0, 1], r[..., 1, 1]), np.arctan2(r[..., 1, 0], r[..., 0, 0]))
+    else:  # the third named angle is c: R' = Ry(b) Rx(a)
+        a = np.where(locked, np.arctan2(-r[..., 1, 2], r[..., 1, 1]), np.arctan2(r[..., 2, 1], r[..., 2, 2]))
+        c = np.where(locked, 0.0, np.arctan2(r[..., 1, 0], r[..., 0, 0]))
     angles = sign * np.stack([a, b, c], -1)
     return angles[..., ::-1] if intrinsic else angles
