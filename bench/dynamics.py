@@ -2,6 +2,14 @@
 
 Run: nice python bench/dynamics.py [--max-vertices 1500] [--epochs 20] [--rows 100000]
      nice python bench/dynamics.py --throughput   # removal speed on the 9,409-vertex face only
+     nice python bench/dynamics.py --captures     # dynamics_train_captures.json on a day of capture
+
+A day of capture (`--captures`): one identity (seed 21) on the 9,409-vertex face region in a
+shuffled vertex order, six held expressions under walk, run, jump and the 8 Hz platform, 200
+frames a take, the 96 fps takes with `rigid`, the 120 fps ones without (mode pursuit in the
+graph); `graphs/dynamics_train_captures.json` with its defaults, then `dynamics_remove.json` on
+a take of an unseen expression (frown) at an unseen frequency (10 Hz, 110 fps): RMS distance to
+the true quasistatic face before and after, and the graph's time.
 
 Removal throughput (`--throughput`, printed first in a full run): the bundled network on a
 600-frame capture of the whole 9,409-vertex face region at 120 fps: `dynamics.RemoveDynamics`
@@ -87,6 +95,61 @@ def throughput(threads: int) -> None:
           f"({test.capture.num_frames / seconds:.0f} frames/s); RMS {10 * before:.3f} -> {10 * after:.3f} mm")
 
 
+def captures(args: argparse.Namespace) -> None:
+    """Print the day-of-capture figures (see the module docstring)."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from nodegraph import runner
+
+    graphs = Path(__file__).resolve().parents[1] / "graphs"
+    face = load_face_model(region="face")
+    order = np.random.default_rng(21).permutation(len(face.neutral))
+    faces = np.argsort(order)[face.faces].astype(np.int32)
+    motions = ["walk", "run", "jump", "oscillate@8"]
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder)
+        (root / "takes").mkdir()
+        for fps, expressions, rigid in ((96.0, ["neutral", "smile", "jaw_open"], True),
+                                        (120.0, ["pucker", "brow_raise", "sneer"], False)):
+            data = simulate_dynamics(face, motions=motions, expressions=expressions, segment_frames=200,
+                                     fps=fps, seed=21)
+            for k, (expression, motion) in enumerate((e, m) for e in expressions for m in motions):
+                cut = slice(200 * k, 200 * (k + 1))
+                arrays = {"vertices": data.capture.vertices[cut][:, order], "faces": faces, "fps": fps}
+                if rigid:
+                    arrays["rigid"] = data.skull.matrices[cut]
+                np.savez(root / "takes" / f"take_{expression}_{motion.replace('@', '')}.npz", **arrays)
+        np.savez(root / "neutral.npz", vertices=data.neutral.vertices[:, order], faces=faces)
+        start = time.perf_counter()
+        result = runner.run(graphs / "dynamics_train_captures.json", cache=root / "cache",
+                            parameters={"captures": str(root / "takes" / "take_*.npz"),
+                                        "neutral": str(root / "neutral.npz"), "model": str(root / "f.safetensors"),
+                                        "report": str(root / "report.json")})
+        train_s = time.perf_counter() - start
+        assert result.exit_code == 0, result.summary()
+        report = json.loads((root / "report.json").read_text())
+        print(f"dynamics_train_captures.json: 24 takes ({report['frames']} training frames, 12 without rigid), "
+              f"{train_s:.0f} s; loss {report['loss_per_epoch'][0]:.4f} -> {report['final_loss']:.4f}; "
+              f"held-out take {report['held_out']['take']}: {report['held_out']['rms_before_mm']} -> "
+              f"{report['held_out']['rms_after_mm']} mm to its moving average")
+        test = simulate_dynamics(face, motions=["oscillate@10"], expressions=["frown"], segment_frames=300,
+                                 fps=110.0, seed=21)
+        np.savez(root / "test.npz", vertices=test.capture.vertices[:, order], faces=faces, fps=110.0,
+                 rigid=test.skull.matrices)
+        result = runner.run(graphs / "dynamics_remove.json", cache=False,
+                            parameters={"capture": str(root / "test.npz"), "skull": str(root / "test.npz"),
+                                        "model": str(root / "f.safetensors"), "output": str(root / "q.npz")})
+        assert result.exit_code == 0, result.summary()
+        with np.load(root / "q.npz") as saved:
+            removed = saved["vertices"]
+    truth = test.quasistatic.vertices[:, order]
+    before, after = rms_distance(test.capture.vertices[:, order], truth), rms_distance(removed, truth)
+    print(f"  unseen frown at 10 Hz, 110 fps: RMS to the true quasistatic face {10 * before:.3f} -> "
+          f"{10 * after:.3f} mm ({100 * (1 - after / before):.1f}% removed)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--max-vertices", type=int, default=1500, help="face region subsample (0 = all 9,409)")
@@ -97,7 +160,11 @@ def main() -> None:
     parser.add_argument("--synthesis-epochs", type=int, default=30)
     parser.add_argument("--throughput", action="store_true", help="only the removal speed on the whole face")
     parser.add_argument("--threads", type=int, default=2, help="torch threads for the throughput")
+    parser.add_argument("--captures", action="store_true", help="only the day-of-capture training")
     args = parser.parse_args()
+    if args.captures:
+        captures(args)
+        return
     throughput(args.threads)
     if args.throughput:
         return
