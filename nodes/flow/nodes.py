@@ -35,7 +35,7 @@ class OpticalFlow(Node):
         iterations: int = Param(40, ge=1, le=500, description="Jacobi iterations per warp, coarsest level.")
         finest_iterations: int = Param(12, ge=1, le=500, description="Jacobi iterations per warp, finest level.")
         skip_levels: int = Param(0, ge=0, le=3, description="Finest pyramid levels not solved (the flow of the "
-                                 "next coarser level is upsampled): each one skipped saves most of the time, at "
+                                 "next coarser level is upsampled): skipping the finest roughly halves the time, at "
                                  "a coarser flow; 0 (every level solved) is the accurate setting.")
         median_every_warp: bool = Param(False, description="3x3 median of the flow after every warp instead of "
                                         "after every level: outliers are removed before the next warp builds on "
