@@ -31,7 +31,8 @@ CONNECT_TIMEOUT_S = 10.0
 _ADDRESS = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?[^\s/]+:\d+|inproc://\S+")
 
 
-def task_specs(plan: Plan, names: list[str], cache: Cache | None, progress: str, stage: str = "") -> dict[str, TaskSpec]:
+def task_specs(plan: Plan, names: list[str], cache: Cache | None, progress: str,
+               stage: str = "") -> dict[str, TaskSpec]:
     """One `TaskSpec` per planned task in `names` (plain data a worker can run)."""
     full = (plan.frames.start, plan.frames.stop)
     specs = {}
