@@ -3,6 +3,13 @@
 Run: nice python bench/dynamics.py [--max-vertices 1500] [--epochs 20] [--rows 100000]
      nice python bench/dynamics.py --throughput   # removal speed on the 9,409-vertex face only
      nice python bench/dynamics.py --captures     # dynamics_train_captures.json on a day of capture
+     nice python bench/dynamics.py --transfer     # synthesis H on identities it has not seen
+
+Transfer of H (`--transfer`, 400-point face region): H trained on 2 or 6 identities (still, walk,
+run, jump, 6/8/10/11 Hz platform; neutral, smile, jaw open, speech; 96 and 128 fps), then
+resynthesis on the seen identity 1 and the unseen identities 9 and 12, and on identity 9 with
+other tissue (stiffness x0.8 and x1.25, damping x0.6): residual RMS against the true dynamic
+capture, as a percentage of doing nothing (adding no dynamics).
 
 A day of capture (`--captures`): one identity (seed 21) on the 9,409-vertex face region in a
 shuffled vertex order, six held expressions under walk, run, jump and the 8 Hz platform, 200
@@ -150,6 +157,35 @@ def captures(args: argparse.Namespace) -> None:
           f"{10 * after:.3f} mm ({100 * (1 - after / before):.1f}% removed)")
 
 
+def transfer() -> None:
+    """Print how H transfers to identities and tissue it has not seen (see the module docstring)."""
+    face = load_face_model(region="face", max_vertices=400)
+    motions = ["still", "walk", "run", "jump", "oscillate@6", "oscillate@8", "oscillate@10", "oscillate@11"]
+    tests = [("seen identity 1, 9 Hz, smile", 1, {}), ("unseen identity 9, 9 Hz, smile", 9, {}),
+             ("unseen identity 12, 9 Hz, smile", 12, {}),
+             ("identity 9, stiffness x0.8", 9, {"stiffness_scale": 0.8}),
+             ("identity 9, stiffness x1.25", 9, {"stiffness_scale": 1.25}),
+             ("identity 9, damping x0.6", 9, {"damping_scale": 0.6})]
+    held = {name: simulate_dynamics(face, motions=["oscillate@9"], expressions=["smile"], segment_frames=220,
+                                    fps=100.0, seed=seed, **kw) for name, seed, kw in tests}
+    for ids in ([1, 2], [1, 2, 3, 4, 5, 6]):
+        parts = [simulate_dynamics(face, motions=motions, expressions=["neutral", "smile", "jaw_open", "speech"],
+                                   segment_frames=120, fps=96.0 if i % 2 else 128.0, seed=seed)
+                 for i, seed in enumerate(ids)]
+        h = run_node(TrainSynthesis, {"num_samples": 100, "epochs": 15, "batch_size": 100, "seed": 0},
+                     frames=range(parts[0].capture.num_frames), captures=[p.capture for p in parts],
+                     quasistatic=[p.quasistatic for p in parts], skulls=[p.skull for p in parts],
+                     neutral=[p.neutral for p in parts], segments=[p.segments for p in parts])["model"]
+        print(f"H trained on identities {ids}:")
+        for name, test in held.items():
+            syn = run_node(SynthesizeDynamics, {}, quasistatic=test.quasistatic, skull=test.skull,
+                           neutral=test.neutral, model=h)["capture"]
+            nothing = rms_distance(test.capture.vertices, test.quasistatic.vertices)
+            residual = rms_distance(syn.vertices, test.capture.vertices)
+            print(f"  {name}: no dynamics {10 * nothing:.3f} mm, H {10 * residual:.3f} mm "
+                  f"({100 * residual / nothing:.0f} % of nothing)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--max-vertices", type=int, default=1500, help="face region subsample (0 = all 9,409)")
@@ -161,9 +197,13 @@ def main() -> None:
     parser.add_argument("--throughput", action="store_true", help="only the removal speed on the whole face")
     parser.add_argument("--threads", type=int, default=2, help="torch threads for the throughput")
     parser.add_argument("--captures", action="store_true", help="only the day-of-capture training")
+    parser.add_argument("--transfer", action="store_true", help="only H on unseen identities")
     args = parser.parse_args()
     if args.captures:
         captures(args)
+        return
+    if args.transfer:
+        transfer()
         return
     throughput(args.threads)
     if args.throughput:
