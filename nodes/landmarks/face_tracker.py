@@ -1,25 +1,25 @@
 """Follow one face through a video by its own landmarks, detecting only when it is lost.
 
 MediaPipe's Face Landmarker front end: after a detection, each frame's face-mesh crop comes
-from the previous frame's 468 points (`nodes.landmarks.tracking.landmark_crop`: their extent in
-the face's axes, times 1.5, turned by their eye line), so the crop moves, zooms and rolls with
-the face and the detector does not run. The detector (BlazeFace over the image pyramid,
-`nodes.landmarks.network.detect_all_faces`) runs again only on a frame where
-
-- the face mesh's presence in the tracked crop drops below `min_presence` (an occlusion, a
-  cut, a face turned away), or
-- nothing is being followed yet (the first frames, or after a loss).
-
-When the face moved so much that the crop made from this frame's points differs from the crop
-read by more than `reread` (the larger of the centre's shift in crop sides, the side's change
-as |log ratio| and the roll's change in radians), the frame is read again in the new crop: an
-off-centre face is read less well.
+from the previous frames' 468 points (`nodes.landmarks.tracking.landmark_crop`: their extent in
+the face's axes, times 1.5, turned by their eye line), moved on by the face's motion over the
+last two frames (`predict_crop`, constant velocity: a crop that lags a moving face drifts off
+it, and the face mesh reads a face 0.2 crop sides off-centre confidently wrong). So the crop
+moves, zooms and rolls with the face for one face-mesh read per frame. When the crop of this
+frame's points differs from the crop read by more than `reread` (`crop_movement`), the frame is
+read again in the new crop (twice at most). The detector (BlazeFace over the image pyramid,
+`nodes.landmarks.network.detect_all_faces`) runs only on a frame where nothing is followed (the
+first frames, after a loss) or where the face mesh's presence in the crop drops below
+`min_presence` (an occlusion, a cut, a face turned away).
 
 Which face: the `face` choice (`nodes.landmarks.tracking.choose_face`) on the first frame that
 finds one. While a followed face is lost, only a detection where it was last seen
 (`refind_face`) continues it, for `refind_frames` frames; after that the choice is made afresh.
-A face the mesh does not confirm (presence below `min_presence` after a detection) fails the
-frame: no confident wrong face.
+No confident wrong face: a detection is taken only when the face mesh confirms it (presence at
+least `min_presence` after the roll passes of `upright_face_landmarks`) and reads it the same
+again in the crop of its own points (`read_disagreement` at most `max_disagreement`); otherwise
+the next detection in the order of the choice is tried, and the frame fails with a reason
+(`nodes.landmarks.tracking.FAILURE_REASONS`) when none is left.
 
 Frames are (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded; pixels as in
 `nodes.landmarks.network`. This module imports torch at the top: import it from node `run()`
@@ -33,12 +33,13 @@ from typing import Callable, NamedTuple
 import numpy as np
 import torch
 
+from .correspondence import MEDIAPIPE_TO_68
 from .iris import iris_landmarks, load_iris_network
 from .network import (PYRAMID_MIN_SCORE, detect_all_faces, eye_roll, face_landmarks, load_face_detector,
                       load_face_mesh, points_roll, square_box, upright_face_landmarks)
 from .tracking import FAILURE_REASONS, FaceChoice, choose_face, landmark_crop, refind_face
 
-__all__ = ["FAILURE_REASONS", "TrackedFaces", "track_faces", "crop_movement", "predict_crop"]
+__all__ = ["FAILURE_REASONS", "TrackedFaces", "track_faces", "crop_movement", "predict_crop", "read_disagreement"]
 
 
 
@@ -61,6 +62,19 @@ class TrackedFaces(NamedTuple):
     detected: np.ndarray
     iris: np.ndarray
     rereads: np.ndarray
+
+
+ROLL_TRIES = (0.0, np.pi / 4, -np.pi / 4)
+"""Turns added to the detector's roll, tried in order until the face mesh finds the face: its eye
+keypoints read a 90 deg roll as about 40 deg, too far for a blurred or compressed face."""
+
+
+def read_disagreement(first: np.ndarray, second: np.ndarray) -> float:
+    """Mean distance between two reads of a face's 68 Multi-PIE points, over the second read's
+    eye distance (`first`, `second`: (468, 2) face-mesh points, pixels)."""
+    a, b = first[MEDIAPIPE_TO_68], second[MEDIAPIPE_TO_68]
+    eye = np.linalg.norm(b[36:42].mean(0) - b[42:48].mean(0))
+    return float(np.linalg.norm(a - b, axis=-1).mean() / max(eye, 1e-9))
 
 
 def crop_movement(box: np.ndarray, roll: float, new_box: np.ndarray, new_roll: float) -> float:
@@ -100,7 +114,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 iou: float = 0.3, min_face_px: float = 40.0, pyramid_min_score: float = PYRAMID_MIN_SCORE,
                 box_scale: float = 1.5, crop_scale: float = 1.5, min_presence: float = 0.5,
                 refind_frames: int = 30, reread: float = 0.05, max_rereads: int = 2,
-                velocity: float = 1.0, max_candidates: int = 3, roll_passes: int = 3, with_iris: bool = True,
+                velocity: float = 1.0, max_candidates: int = 3,
+                max_disagreement: float = 0.15, roll_passes: int = 3, with_iris: bool = True,
                 progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
     """Follow the chosen face through `frames` (see the module docstring).
 
@@ -117,6 +132,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
         max_rereads: most re-reads per frame.
         velocity: how far the crop is moved on by the last frames' motion (`predict_crop`).
         max_candidates: detections tried, in the order of the choice, until the face mesh confirms one.
+        max_disagreement: most `read_disagreement` between a detection's read and a second read in
+            the crop of its points; above it the face mesh is not sure of the face (reason 4).
         roll_passes: face-mesh passes that re-turn a detection's crop (`upright_face_landmarks`).
         with_iris: run the iris network (`iris` stays NaN without).
         progress: called with (fraction done, message).
@@ -173,15 +190,24 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                     if pick < 0:
                         break
                     box = square_box(boxes[pick], box_scale)
-                    pts, pres, turned = upright_face_landmarks(image, box[None], mesh,
-                                                               np.array([eye_roll(keypoints[pick])]), roll_passes)
-                    presence = max(float(pres[0]), out.presence[f])
-                    out.presence[f] = presence
-                    if float(pres[0]) >= min_presence:
-                        points, crop, crop_roll = pts[0].double().cpu().numpy(), box, float(turned[0])
-                        presence = float(pres[0])
-                        break
-                    reason = 2
+                    first_roll = float(eye_roll(keypoints[pick]))
+                    for extra in ROLL_TRIES:  # the detector's roll can be far off (a 90 deg roll reads ~40)
+                        pts, pres, turned = upright_face_landmarks(image, box[None], mesh,
+                                                                   np.array([first_roll + extra]), roll_passes)
+                        if float(pres[0]) >= min_presence:
+                            break
+                    out.presence[f] = max(float(pres[0]), out.presence[f])
+                    if float(pres[0]) >= min_presence:  # read again in the crop of its own points: agree?
+                        first = pts[0].double().cpu().numpy()
+                        roll = float(points_roll(first))
+                        again_crop = landmark_crop(first, roll, crop_scale)
+                        again, again_presence = read(image, again_crop, roll)
+                        if again_presence >= min_presence and read_disagreement(first, again) <= max_disagreement:
+                            points, presence, crop, crop_roll = again, again_presence, again_crop, roll
+                            break
+                        reason = 4
+                    else:
+                        reason = 2
                     if not isinstance(face, str) and not refind:  # an index or a box names one detection
                         break
                     keep = np.arange(len(boxes)) != pick

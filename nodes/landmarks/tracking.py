@@ -38,7 +38,8 @@ EYE_CORNERS = np.array([[33, 133], [362, 263]], np.int64)
 face (eye 0, the subject's right: outer then inner corner; eye 1: inner then outer)."""
 
 FAILURE_REASONS = ("", "no face found", "face presence below min_presence",
-                   "the followed face is lost; other faces are in view")
+                   "the followed face is lost; other faces are in view",
+                   "two reads of the face disagree (the face mesh is unsure of it)")
 """Why a frame failed, by code (`nodes.landmarks.face_tracker.track_faces`; 0: it did not)."""
 
 

@@ -212,3 +212,37 @@ def make_video(name: str = "astronaut", count: int = 30, *, canvas: tuple[int, i
         eyes.append(c.eye)
         others.append(c.others[0] if len(c.others) else np.full(4, np.nan))
     return VideoCase(np.stack(frames), np.stack(points), np.array(eyes), np.stack(others))
+
+
+def degrade(image: np.ndarray, kind: str, seed: int = 0) -> np.ndarray:
+    """A frame spoiled as footage is: (H, W, 3) float32 sRGB in [0, 1] -> the same shape.
+
+    kinds: "dark" (3 stops under: linear light / 8), "blur" (Gaussian, sigma 3 px), "jpeg 6"
+    (JPEG at quality 6, Pillow), "noise" (Gaussian, sigma 0.1, seeded), "grey" (Rec. 709 luma),
+    "16-bit" (quantized to 16 bits: the values a 16-bit file holds).
+    """
+    from nodegraph.types import linear_to_srgb, srgb_to_linear
+
+    if kind == "dark":
+        return linear_to_srgb(srgb_to_linear(image) / 8.0).astype(np.float32)
+    if kind == "blur":
+        from scipy.ndimage import gaussian_filter
+
+        return gaussian_filter(image, (3.0, 3.0, 0.0)).astype(np.float32)
+    if kind.startswith("jpeg"):
+        import io
+
+        from PIL import Image
+
+        buffer = io.BytesIO()
+        Image.fromarray((np.clip(image, 0, 1) * 255).round().astype(np.uint8)).save(
+            buffer, "JPEG", quality=int(kind.split()[1]))
+        return np.asarray(Image.open(buffer), np.float32) / 255.0
+    if kind == "noise":
+        rng = np.random.default_rng(seed)
+        return np.clip(image + rng.normal(0, 0.1, image.shape), 0, 1).astype(np.float32)
+    if kind == "grey":
+        return np.repeat((image @ np.array([0.2126, 0.7152, 0.0722]))[..., None], 3, -1).astype(np.float32)
+    if kind == "16-bit":
+        return ((np.clip(image, 0, 1) * 65535).round() / 65535).astype(np.float32)
+    raise ValueError(f"kind: expected dark, blur, jpeg N, noise, grey or 16-bit, found {kind!r}")
