@@ -1,6 +1,7 @@
 """Face detection cost per frame at 1080p (whole frame vs image pyramid) and the hard cases.
 
 Run: nice python bench/detect_faces.py [--repeat 3] [--threads 2] [--batch 1] [--no-cases] [--no-video]
+     [--no-spoiled]
 
 Timings (best of `--repeat` runs after one warm-up, ms per frame: the least disturbed by other
 work on a shared machine) on a 1920 x 1080 frame
@@ -28,6 +29,11 @@ where the detector ran, extra face-mesh reads, failed frames (presence below 0.5
 the largest 68-point error and the jitter: the mean frame-to-frame change of the 68 points'
 error (the truth moves smoothly, so this is what shakes on screen), both in % of the eye
 distance; failed frames are left out of both.
+
+Then, unless `--no-spoiled`, `landmarks.TrackFaces` on spoiled frames (`cases.degrade`: 3 stops
+dark, blurred, JPEG quality 6, noisy, grey, 16-bit) of three cases at the 4 placements: per
+case the 68-point error in % of the eye distance, or F and the failure reason's code
+(`nodes.landmarks.tracking.FAILURE_REASONS`).
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1, help="frames per detector call")
     parser.add_argument("--no-cases", action="store_true", help="no hard cases")
     parser.add_argument("--no-video", action="store_true", help="no video tracking")
+    parser.add_argument("--no-spoiled", action="store_true", help="no spoiled frames")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -86,6 +93,8 @@ def main() -> None:
         print(f"| {name} | {device} | {ms:.0f} | {note} |")
     if not args.no_video:
         video_rows(args.repeat)
+    if not args.no_spoiled:
+        spoiled_rows()
     if args.no_cases:
         return
     mesh = load_face_mesh()
@@ -167,6 +176,28 @@ def video_rows(repeat: int) -> None:
             mean, worst, jitter = video_stats(points, video.points, video.eye, ok)
             print(f"| {name} ({len(frames)} frames) | {how} | {ms:.1f} | {note[0]} | {note[1]} | {int((~ok).sum())} | "
                   f"{mean:.2f}, {worst:.1f} | {jitter:.2f} |", flush=True)
+
+
+def spoiled_rows() -> None:
+    """Print `landmarks.TrackFaces` on spoiled frames (see the module docstring)."""
+    from cases import CASES, degrade, error_percent, make_case
+
+    from nodes.landmarks.correspondence import MEDIAPIPE_TO_68
+    from nodes.landmarks.face_tracker import track_faces
+
+    print("\n| photo | case | spoiled | error % eye distance, or F + reason (per placement) |\n|---|---|---|---|")
+    for photo in ("astronaut", "camera"):
+        for base in ("upright", "roll 90", "eye 25 px in 1080p"):
+            for kind in ("dark", "blur", "jpeg 6", "noise", "grey", "16-bit"):
+                cells = []
+                for i, (dx, dy) in enumerate(SHIFTS):
+                    kw = dict(CASES[base])
+                    at = kw.pop("at", (0.5, 0.5))
+                    c = make_case(photo, **kw, at=(at[0] + dx, at[1] + dy))
+                    out = track_faces(degrade(c.image, kind, seed=i)[None], with_iris=False)
+                    cells.append(f"F{out.reasons[0]}" if out.failed[0] else
+                                 f"{error_percent(out.points[0][MEDIAPIPE_TO_68], c.points[MEDIAPIPE_TO_68], c.eye):.1f}")
+                print(f"| {photo} | {base} | {kind} | {' '.join(cells)} |", flush=True)
 
 
 if __name__ == "__main__":
