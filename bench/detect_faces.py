@@ -24,7 +24,8 @@ distance 45-55 px, roll +-10 deg, 190 px across, a 22 px bob) and "fast" (30 fra
   track               `landmarks.TrackFaces` (`face_tracker.track_faces`): the detector on the
                       first frame, then each crop from the previous frames' points
   detect every frame  `landmarks.DetectFaces` + `FaceLandmarks` (pyramid min_face 40, roll passes 3)
-with ms per frame (best of `--repeat` runs of the whole video, after one warm-up), the frames
+with ms per frame (best of `--repeat` runs of the whole video, after one warm-up; and the CPU time
+of one run on one thread, which other work on a shared machine moves little), the frames
 where the detector ran, extra face-mesh reads, failed frames (presence below 0.5), the mean and
 the largest 68-point error and the jitter: the mean frame-to-frame change of the 68 points'
 error (the truth moves smoothly, so this is what shakes on screen), both in % of the eye
@@ -40,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -156,8 +158,16 @@ def video_rows(repeat: int) -> None:
                 points[f], presence[f] = pts[0].double().numpy(), float(pres[0])
         return points, presence
 
-    print("\n| video | how | ms/frame | detector runs | extra mesh reads | failed | error % (mean, max) | "
-          "jitter % |\n|---|---|---|---|---|---|---|---|")
+    def cpu_ms(fn) -> float:  # CPU time of one run on one thread: little moved by other work on the machine
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        start = time.thread_time()
+        fn()
+        torch.set_num_threads(threads)
+        return (time.thread_time() - start) * 1e3
+
+    print("\n| video | how | ms/frame | 1-thread CPU ms/frame | detector runs | extra mesh reads | failed | "
+          "error % (mean, max) | jitter % |\n|---|---|---|---|---|---|---|---|---|")
     for name, kw in VIDEOS.items():
         video = make_video("astronaut", **kw)
         frames = video.frames
@@ -165,16 +175,18 @@ def video_rows(repeat: int) -> None:
             if how.startswith("track"):
                 iris = how == "track"
                 ms = best_ms(lambda: track_faces(frames, with_iris=iris), repeat) / len(frames)
+                cpu = cpu_ms(lambda: track_faces(frames, with_iris=iris)) / len(frames)
                 out = track_faces(frames, with_iris=iris)
                 points, ok = out.points, ~out.failed
                 note = (int(out.detected.sum()), int(out.rereads.sum()))
             else:
                 ms = best_ms(lambda: every_frame(frames), max(1, repeat - 1)) / len(frames)
+                cpu = cpu_ms(lambda: every_frame(frames)) / len(frames)
                 points, presence = every_frame(frames)
                 ok = presence >= 0.5
                 note = (len(frames), "-")
             mean, worst, jitter = video_stats(points, video.points, video.eye, ok)
-            print(f"| {name} ({len(frames)} frames) | {how} | {ms:.1f} | {note[0]} | {note[1]} | {int((~ok).sum())} | "
+            print(f"| {name} ({len(frames)} frames) | {how} | {ms:.1f} | {cpu:.1f} | {note[0]} | {note[1]} | {int((~ok).sum())} | "
                   f"{mean:.2f}, {worst:.1f} | {jitter:.2f} |", flush=True)
 
 
