@@ -14,6 +14,7 @@ Model config `kind` = "synthesis"; normalization as the removal network's plus
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import numpy as np
 
@@ -27,7 +28,8 @@ from .networks import predict, single_thread, standardize_stats, train_mlp
 from .propagate import cached_interpolation_matrix, propagate_offsets
 from .removal import HALO, _check_lists, _fps, check_model, model_edges, region_vertices
 
-__all__ = ["synthesis_inputs", "predict_synthesis", "TrainSynthesis", "SynthesizeDynamics", "Retarget"]
+__all__ = ["synthesis_inputs", "predict_synthesis", "fit_synthesis", "TrainSynthesis", "SynthesizeDynamics",
+           "Retarget"]
 
 
 def synthesis_inputs(quasistatic: np.ndarray, skull: np.ndarray, neutral: np.ndarray,
@@ -91,45 +93,71 @@ class TrainSynthesis(Node):
                              neutral=neutral, segments=segments)
         rest = neutral[0].vertices[0].astype(np.float64)
         samples = select_samples(rest, p.num_samples, region_vertices(captures[0], p.region))
-        stencil = stretch_stencil(rest, samples, spacing_cm=p.spacing_cm)
-        landmarks = skull_landmarks(rest)
-        inputs, targets = [], []
         for i in range(count):
             if captures[i].num_vertices != len(rest) or neutral[i].num_vertices != len(rest):
                 raise InputError("captures", f"expected {len(rest)} vertices in capture and neutral "
                                              f"{i} (as neutral 0), found {captures[i].num_vertices} "
                                              f"and {neutral[i].num_vertices}")
-            fps, skull = float(captures[i].fps), skulls[i].matrices
-            reach = window_reach(p.window, fps, p.feature_fps)
-            ok = segment_margin_mask(segments[i].values[:, 0] if segments else None,
-                                     captures[i].num_frames, reach)
-            ok[:reach] = ok[-reach:] = False
-            frames = np.flatnonzero(ok)
-            rows = synthesis_inputs(quasistatic[i].vertices, skull, neutral[i].vertices[0], landmarks,
-                                    stencil, fps, p.window, p.feature_fps)
-            dy = dynamic_offsets(captures[i].vertices[:, samples], quasistatic[i].vertices[:, samples], skull)
-            inputs.append(rows[frames])
-            targets.append(dy[frames].reshape(len(frames), -1).astype(np.float32))
-        x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
-        if not len(x_all):
-            raise InputError("captures", "expected frames away from segment changes and ends, found none")
-        in_mean, in_std = standardize_stats(x_all)
-        out_mean, out_std = standardize_stats(y_all)
-        result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std, hidden=p.hidden,
-                           epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
-                           seed=(self.seed if p.seed is None else p.seed) % (2 ** 63), device=self.device,
-                           progress=self.progress)
-        config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden),
-                  "out_features": int(y_all.shape[1]), "kind": "synthesis", "window": p.window,
-                  "feature_fps": p.feature_fps, "num_vertices": int(len(rest))}
-        norm = {"input_mean": in_mean, "input_std": in_std, "output_mean": out_mean,
-                "output_std": out_std, "sample_ids": samples.astype(np.int64),
-                "skull_landmarks": landmarks, "stretch_stencil": stencil.astype(np.int64),
-                "rest_vertices": rest.astype(np.float32)}
-        model = TorchModel.from_module("dynamics.MLP", config, result.module, norm)
-        report = {"rows": int(len(x_all)), "epochs": p.epochs, "seconds": round(result.seconds, 3),
-                  "final_loss": result.losses[-1], "losses": [round(v, 6) for v in result.losses]}
+        model, report = fit_synthesis(
+            p, [c.vertices for c in captures], [q.vertices for q in quasistatic], [s.matrices for s in skulls],
+            [n.vertices[0] for n in neutral], [float(c.fps) for c in captures],
+            [s.values[:, 0] for s in segments] if segments else [None] * count, rest, samples,
+            self.seed if p.seed is None else p.seed, self.device, self.progress)
         return {"model": model, "report": JsonValue(report)}
+
+
+def fit_synthesis(p: NodeParams, captures: list[np.ndarray], quasistatic: list[np.ndarray],
+                  skulls: list[np.ndarray], neutrals: list[np.ndarray], fps: list[float],
+                  segments: list[np.ndarray | None], rest: np.ndarray, samples: np.ndarray, seed: int,
+                  device: str, progress: Callable[[float, str], None]) -> tuple[TorchModel, dict]:
+    """Fit H on (quasistatic, dynamic) pairs (the body of dynamics.TrainSynthesis).
+
+    Args:
+        p: TrainSynthesis's parameters (window, feature_fps, spacing_cm, hidden, epochs,
+            batch_size, lr).
+        captures, quasistatic: per capture (F_i, V, 3) world positions, cm.
+        skulls: per capture (F_i, 4, 4) skull-to-world.
+        neutrals: per capture (V, 3) skull-frame neutral, cm.
+        fps: per capture frames per second.
+        segments: per capture (F_i,) segment labels or None.
+        rest: (V, 3) the rest shape of the samples, landmarks and stencil, cm.
+        samples: (N,) sample vertex indices.
+        seed, device, progress: as for `train_mlp`.
+    Returns:
+        (the model, a report: rows, epochs, seconds, final_loss, losses).
+    """
+    stencil = stretch_stencil(rest, samples, spacing_cm=p.spacing_cm)
+    landmarks = skull_landmarks(rest)
+    inputs, targets = [], []
+    for i in range(len(captures)):
+        reach = window_reach(p.window, fps[i], p.feature_fps)
+        ok = segment_margin_mask(segments[i], len(captures[i]), reach)
+        ok[:reach] = ok[-reach:] = False
+        frames = np.flatnonzero(ok)
+        rows = synthesis_inputs(quasistatic[i], skulls[i], neutrals[i], landmarks, stencil, fps[i],
+                                p.window, p.feature_fps)
+        dy = dynamic_offsets(captures[i][:, samples], quasistatic[i][:, samples], skulls[i])
+        inputs.append(rows[frames])
+        targets.append(dy[frames].reshape(len(frames), -1).astype(np.float32))
+    x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
+    if not len(x_all):
+        raise InputError("captures", "expected frames away from segment changes and ends, found none")
+    in_mean, in_std = standardize_stats(x_all)
+    out_mean, out_std = standardize_stats(y_all)
+    result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std, hidden=p.hidden,
+                       epochs=p.epochs, batch_size=p.batch_size, lr=p.lr, seed=seed % (2 ** 63),
+                       device=device, progress=progress)
+    config = {"in_features": int(x_all.shape[1]), "hidden": list(p.hidden),
+              "out_features": int(y_all.shape[1]), "kind": "synthesis", "window": p.window,
+              "feature_fps": p.feature_fps, "num_vertices": int(len(rest))}
+    norm = {"input_mean": in_mean, "input_std": in_std, "output_mean": out_mean,
+            "output_std": out_std, "sample_ids": samples.astype(np.int64),
+            "skull_landmarks": landmarks, "stretch_stencil": stencil.astype(np.int64),
+            "rest_vertices": np.asarray(rest, np.float32)}
+    model = TorchModel.from_module("dynamics.MLP", config, result.module, norm)
+    report = {"rows": int(len(x_all)), "epochs": p.epochs, "seconds": round(result.seconds, 3),
+              "final_loss": result.losses[-1], "losses": [round(v, 6) for v in result.losses]}
+    return model, report
 
 
 class SynthesizeDynamics(Node):

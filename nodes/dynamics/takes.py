@@ -17,7 +17,9 @@ it to the actor's performances. Here:
   takes (a name pattern; the rest, e.g. dialog, are not used), optionally on one vertex group
   (the network then records it and also cleans whole captures), and reports the training loss
   per epoch and a held-out take's error against its own moving-average target.
-- `dynamics.SaveReport` writes that report (JSON) and shows it as a table.
+- `dynamics.TrainSynthesisTakes` trains the synthesis network H as in the paper: F's
+  quasistatic output of the takes (dialog included) as input, the captures as the target.
+- `dynamics.SaveReport` writes the reports (JSON) and shows them as a table.
 
 Nothing depends on a vertex count or order: samples are farthest-point samples of the neutral,
 the skull landmarks come from its bounding box, the propagation uses the takes' faces.
@@ -44,10 +46,11 @@ from ..geometry.rigid import fit_rigid, stabilize_vertices
 from ..io.mesh import load_mesh_sequence, mesh_frame_count
 from .evaluate import rms_distance
 from .features import moving_average_target, select_samples, window_reach
-from .removal import HALO, fit_removal, remove_dynamics
+from .removal import HALO, check_model, fit_removal, remove_dynamics
+from .synthesis import fit_synthesis
 
 __all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "neutral_frame", "LoadTakes", "StabilizeTakes",
-           "TrainRemovalTakes", "SaveReport"]
+           "TrainRemovalTakes", "TrainSynthesisTakes", "SaveReport"]
 
 TAKE_SUFFIXES = (".npz", ".usd", ".usda", ".usdc", ".obj", ".ply")
 _NUMBERED = re.compile(r"^(?P<head>.*?)(?P<number>\d+)\.(?P<ext>obj|ply)$", re.IGNORECASE)
@@ -422,8 +425,76 @@ def held_out_error(model: TorchModel, takes: Takes, index: int, target_window_s:
             "reduction_pct": round(100 * (1 - after / before), 2) if before > 0 else 0.0}
 
 
+class TrainSynthesisTakes(Node):
+    """Train the synthesis network H as in the paper: quasistatic takes from F, their captures the target."""
+
+    type_name = "dynamics.TrainSynthesisTakes"
+    version = 1
+    kind = SEQUENCE
+    resources = {"gpu": 1}
+
+    class Params(NodeParams):
+        takes: str = Param("*", description="Name pattern (fnmatch) of the takes H learns from: all by "
+                           "default (held expressions and dialog: F's quasistatic output is the input, "
+                           "the capture the target, so no take needs a held expression).")
+        region: str = Param("", description="Vertex group of H's samples ('' = all vertices).")
+        num_samples: int = Param(344, ge=1, description="Skin samples (farthest-point sampling of the neutral).")
+        window: int = Param(10, ge=1, description="Half-size of the skull descriptor window (samples).")
+        feature_fps: float = Param(120.0, gt=0, description="Sample rate of the window (1/s).")
+        spacing_cm: float = Param(0.2, gt=0, description="Preferred stretch stencil spacing (cm).")
+        hidden: list[int] = Param([256, 256], description="Hidden layer widths.")
+        epochs: int = Param(30, ge=1, description="Passes over the training frames.")
+        batch_size: int = Param(50, ge=1, description="Frames per Adam step.")
+        lr: float = Param(1e-3, gt=0, description="Adam learning rate.")
+        seed: int | None = Param(None, ge=0, description="Seed of the batch order and weights; none = "
+                                 "derived from the task's cache key; an integer pins training.")
+
+    takes = In(Takes, doc="Takes with skull motion (dynamics.StabilizeTakes).")
+    neutral = In(MeshSequence, per_frame=False, doc="The subject's neutral (1 frame, the takes' topology).")
+    removal = In(TorchModel, doc="Removal network F (dynamics.TrainRemovalTakes).")
+    model = Out(TorchModel, doc="Synthesis network H (dynamics.MLP).")
+    report = Out(JsonValue, doc="Takes used, rows, loss per epoch.")
+
+    def run(self, takes: Takes, neutral: MeshSequence, removal: TorchModel) -> dict:
+        p = self.params
+        rest = check_neutral(neutral, takes)
+        chosen = [i for i, name in enumerate(takes.names) if fnmatch.fnmatchcase(name, p.takes)]
+        if not chosen:
+            raise InputError("takes", f"expected takes matching '{p.takes}', found none among {takes.names}")
+        missing = [takes.names[i] for i in chosen if not takes.has_rigid[i]]
+        if missing:
+            raise InputError("takes", f"expected a skull motion for every take (dynamics.StabilizeTakes), "
+                                      f"found none for {missing}")
+        ids = None
+        if p.region:
+            if p.region not in takes.groups:
+                raise InputError("region", f"expected a vertex group '{p.region}' of the takes, found "
+                                           f"{sorted(takes.groups) or 'none'}")
+            ids = np.unique(np.asarray(takes.groups[p.region], np.int64))
+        captures, quasistatic, skulls, fps = [], [], [], []
+        for n, i in enumerate(chosen):
+            mesh, skull = takes.take(i), takes.skull(i).matrices
+            region = check_model(removal, "removal", mesh, float(takes.fps[i]), port="removal", whole=True,
+                                 mesh_port="takes")
+            quasi, _ = remove_dynamics(removal, mesh, skull, float(takes.fps[i]), region)
+            captures.append(mesh.vertices)
+            quasistatic.append(quasi)
+            skulls.append(skull)
+            fps.append(float(takes.fps[i]))
+            self.progress(0.2 * (n + 1) / len(chosen), f"quasistatic take {takes.names[i]} from F")
+        samples = select_samples(rest, p.num_samples, ids)
+        model, report = fit_synthesis(p, captures, quasistatic, skulls, [rest] * len(chosen), fps,
+                                      [None] * len(chosen), rest, samples,
+                                      self.seed if p.seed is None else p.seed, self.device,
+                                      lambda f, m: self.progress(0.2 + 0.8 * f, m))
+        report = {"takes": [takes.names[i] for i in chosen], "rows": report["rows"],
+                  "loss_per_epoch": report["losses"], "final_loss": report["final_loss"],
+                  "seconds": report["seconds"]}
+        return {"model": model, "report": JsonValue(report)}
+
+
 class SaveReport(Node):
-    """Write a training report (JSON) and show its numbers as a table."""
+    """Write the training reports (JSON) and show their numbers as a table."""
 
     type_name = "dynamics.SaveReport"
     version = 1
@@ -434,24 +505,29 @@ class SaveReport(Node):
         path: str = Param("out/dynamics/train_report.json", output_file=True,
                           description="Output JSON file ('' = write nothing, only the table).")
 
-    report = In(JsonValue, doc="The report (dynamics.TrainRemovalTakes).")
+    report = In(JsonValue, doc="The removal network's report (dynamics.TrainRemovalTakes).")
+    synthesis = In(JsonValue, optional=True, doc="The synthesis network's report (dynamics.TrainSynthesisTakes).")
     files = Out(Files, doc="The written file.")
-    table = Out(Table, doc="The scalar entries, the held-out take's error flattened ('held_out.rms_after_mm').")
+    table = Out(Table, doc="The scalar entries, nested ones flattened ('held_out.rms_after_mm').")
 
-    def run(self, report: JsonValue) -> dict:
-        rows = []
-        for key, value in report.value.items():
-            if isinstance(value, dict):
-                rows += [[f"{key}.{k}", v] for k, v in value.items() if not isinstance(v, (list, dict))]
-            elif isinstance(value, list):
-                if value and all(isinstance(v, (int, float)) for v in value):
-                    rows.append([f"{key} (first, last)", f"{value[0]:g}, {value[-1]:g}"])
-                else:
-                    rows.append([key, ", ".join(str(v) for v in value)])
+    def run(self, report: JsonValue, synthesis: JsonValue | None = None) -> dict:
+        value = dict(report.value) if synthesis is None else {"removal": report.value, "synthesis": synthesis.value}
+        rows: list[list] = []
+
+        def add(prefix: str, item: object) -> None:
+            if isinstance(item, dict):
+                for key, sub in item.items():
+                    add(f"{prefix}.{key}" if prefix else str(key), sub)
+            elif isinstance(item, list) and item and all(isinstance(v, (int, float)) for v in item):
+                rows.append([f"{prefix} (first, last)", f"{item[0]:g}, {item[-1]:g}"])
+            elif isinstance(item, list):
+                rows.append([prefix, ", ".join(str(v) for v in item)])
             else:
-                rows.append([key, value])
+                rows.append([prefix, item])
+
+        add("", value)
         paths = []
         if self.params.path:
-            write_text_atomic(self.params.path, json.dumps(report.value, indent=2, sort_keys=True) + "\n")
+            write_text_atomic(self.params.path, json.dumps(value, indent=2, sort_keys=True) + "\n")
             paths = [self.params.path]
         return {"files": files_value(paths), "table": Table(["entry", "value"], rows)}
