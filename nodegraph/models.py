@@ -16,7 +16,8 @@ on the first unknown name).
 Files (`save_model` / `load_model`) are npz archives of `TorchModel.to_arrays()` plus a
 `__port_type__` marker: plain arrays and JSON strings, read with `allow_pickle=False`.
 
-This module does not import torch at module level; only `build_model` does.
+This module does not import torch at module level; only `build_model` and the file readers
+(`check_model_weights`) do.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ import numpy as np
 from .ports import PortType, check_finite, fail
 
 __all__ = ["TorchModel", "register_architecture", "architectures", "get_architecture", "build_model",
-           "save_model", "load_model", "save_model_safetensors", "load_model_safetensors",
+           "check_model_weights", "save_model", "load_model", "save_model_safetensors",
+           "load_model_safetensors",
            "SAFETENSORS_FORMAT"]
 
 SAFETENSORS_FORMAT = "nodegraph.TorchModel/1"
@@ -206,6 +208,44 @@ def _mismatches(model: TorchModel, expected: dict[str, Any]) -> list[str]:
     return problems
 
 
+def check_model_weights(model: TorchModel, where: str) -> None:
+    """Check, without loading them, that `model`'s weights fit the module its config builds.
+
+    The module is built on torch's "meta" device (shapes and dtypes, no memory), so a file can
+    be checked when it is read, before any frame runs. A builder that cannot build on "meta" is
+    built on the CPU instead.
+
+    Args:
+        model: the stored network.
+        where: what to name in the error, e.g. the file it was read from.
+    Raises:
+        ValueError: "WHERE: ..." for an unknown architecture, a config its builder refuses, or
+            weights whose keys, shapes or dtypes differ from the module's (each one listed).
+    """
+    import torch
+
+    try:
+        builder = get_architecture(model.architecture)
+    except KeyError as err:
+        raise ValueError(f"{where}: {err.args[0]}") from None
+    try:
+        try:
+            with torch.device("meta"):
+                module = builder(dict(model.config))
+        except (NotImplementedError, RuntimeError):
+            module = builder(dict(model.config))
+    except (TypeError, ValueError, KeyError, RuntimeError) as err:
+        raise ValueError(f"{where}: expected a config the builder of '{model.architecture}' accepts, "
+                         f"found {model.config} ({type(err).__name__}: {err})") from err
+    if not isinstance(module, torch.nn.Module):
+        raise ValueError(f"{where}: the builder of '{model.architecture}' must return a "
+                         f"torch.nn.Module, found {type(module).__name__}")
+    problems = _mismatches(model, module.state_dict())
+    if problems:
+        raise ValueError(f"{where}: expected the weights of the '{model.architecture}' module its "
+                         f"config builds ({model.config}), found: {'; '.join(problems)}")
+
+
 def build_model(model: TorchModel, device: str = "cpu") -> Any:
     """Construct `model`'s module via the registry and load its weights (bit for bit).
 
@@ -257,7 +297,8 @@ def load_model(path: str | os.PathLike) -> TorchModel:
     """Read a model written by `save_model` (no pickle).
 
     Raises:
-        ValueError: "FILE: ..." for an unreadable file or one that holds no TorchModel.
+        ValueError: "FILE: ..." for an unreadable file, one that holds no TorchModel, or weights
+            that do not fit the module their config builds (`check_model_weights`).
     """
     if Path(path).suffix.lower() == ".safetensors":
         return load_model_safetensors(path)
@@ -277,6 +318,7 @@ def load_model(path: str | os.PathLike) -> TorchModel:
         raise ValueError(f"{os.fspath(path)}: expected the arrays of a TorchModel, found keys "
                          f"{sorted(arrays)} ({err})") from err
     model.validate(os.fspath(path))
+    check_model_weights(model, os.fspath(path))
     return model
 
 
@@ -313,7 +355,8 @@ def load_model_safetensors(path: str | os.PathLike) -> TorchModel:
     """Read a model written by `save_model_safetensors` (weights and normalization bit-exact).
 
     Raises:
-        ValueError: "FILE: ..." for an unreadable file, or one without the TorchModel metadata.
+        ValueError: "FILE: ..." for an unreadable file, one without the TorchModel metadata, or
+            weights that do not fit the module their config builds (`check_model_weights`).
     """
     from safetensors import safe_open
 
@@ -338,4 +381,5 @@ def load_model_safetensors(path: str | os.PathLike) -> TorchModel:
         raise ValueError(f"{where}: expected metadata 'architecture', 'config' and "
                          f"'normalization' of a TorchModel, found keys {sorted(metadata)} ({err})") from err
     model.validate(where)
+    check_model_weights(model, where)
     return model

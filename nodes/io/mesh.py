@@ -35,7 +35,7 @@ from nodegraph.files import atomic_path, files_value
 
 from ._files import (check_frame_range, expand_frame_pattern, find_frame_numbers, format_of, frame_token,
                      frame_where, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
-from .mesh_frame import MeshFrame, check_frame, fan_triangulate
+from .mesh_frame import MeshFrame, check_frame, check_magnitude, check_mesh_file, fan_triangulate
 from .usd import load_usd_mesh, save_usd_mesh, usd_mesh_frame_count
 
 __all__ = [
@@ -345,6 +345,7 @@ def _load_npz(path: str, frames: range, fps: float) -> MeshSequence:
         i, v = (int(x) for x in np.argwhere(bad)[0][:2])
         raise InputError("path", f"{frame_where(frames[i], path)}: expected finite vertices, found "
                                  f"NaN/inf at vertex {v}")
+    check_magnitude(vertices, frames, lambda f: path)
     return MeshSequence(vertices=vertices, faces=faces, uv=uv, uv_faces=uv_faces, groups=groups,
                         fps=fps)
 
@@ -403,20 +404,24 @@ def load_mesh_sequence(path: str, frames: range, *, prim: str = "", first_frame:
         MeshSequence with len(frames) frames, vertices in cm.
     Raises:
         InputError: naming the file and frame: missing or unreadable file, vertex count or
-            faces differing from frame 0, non-finite vertices, unknown extension.
+            faces differing from frame 0, non-finite vertices or ones beyond
+            `MAX_COORDINATE_CM`, a stored fps not finite and > 0, face indices of missing
+            vertices, unknown extension.
     """
     fmt = format_of(path, MESH_FORMATS)
     if frame_token(path) is not None:
         if fmt not in _PER_FRAME_FORMATS:
             raise InputError("path", f"'{path}': expected a single .{fmt} file, found a numbered "
                                      "pattern (numbered files are OBJ or PLY)")
-        return _load_numbered(path, fmt, frames, first_frame, fps)
-    if fmt == "npz":
-        if not os.path.isfile(path):
+        mesh = _load_numbered(path, fmt, frames, first_frame, fps)
+        check_mesh_file(mesh, path, expand_frame_pattern(path, _resolve_first(path, first_frame)[0]))
+        return mesh
+    if fmt in ("npz", "usd"):
+        if fmt == "npz" and not os.path.isfile(path):
             raise InputError("path", f"file '{path}': expected an .npz file, found it missing")
-        return _load_npz(path, frames, fps)
-    if fmt == "usd":
-        return load_usd_mesh(path, frames, prim, fps)
+        mesh = _load_npz(path, frames, fps) if fmt == "npz" else load_usd_mesh(path, frames, prim, fps)
+        check_mesh_file(mesh, path, path)
+        return mesh
     raise InputError("path", f"'{path}': expected a numbered pattern (face.%04d.{fmt}) for "
                              f"{fmt.upper()} files, found a single file name")
 
@@ -495,8 +500,9 @@ class LoadMeshSequence(Node):
     def frame_count(self) -> int | None:
         p = self.params
         count = mesh_frame_count(p.path, prim=p.prim, first_frame=p.first_frame)
-        if count == 0:  # missing or unreadable: reading frame 0 raises the error naming the file
-            load_mesh_sequence(p.path, range(0, 1), prim=p.prim, first_frame=p.first_frame, fps=p.fps)
+        # frame 0 read while planning: a missing or unreadable file, a bad stored fps, faces of
+        # missing vertices or a wild frame 0 are one error before anything runs
+        load_mesh_sequence(p.path, range(0, 1), prim=p.prim, first_frame=p.first_frame, fps=p.fps)
         return count
 
     def peek_vertex_count(self) -> int | None:

@@ -9,11 +9,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from nodegraph import InputError
+from nodegraph import InputError, MeshSequence
 
 from ._files import frame_where
 
-__all__ = ["MeshFrame", "fan_triangulate", "check_frame"]
+__all__ = ["MeshFrame", "MAX_COORDINATE_CM", "fan_triangulate", "check_frame", "check_magnitude",
+           "check_mesh_file"]
+
+MAX_COORDINATE_CM = 1e6
+"""Largest vertex coordinate a reader accepts, in cm (10 km). Beyond it float32 steps are 0.06 cm
+or coarser, as coarse as the motion a capture measures, and squared distances overflow float32
+near 1e19: a coordinate that large is a unit or export error, never a face."""
 
 
 class MeshFrame(NamedTuple):
@@ -89,3 +95,53 @@ def check_frame(frame: int, file: str, vertices: np.ndarray, faces: np.ndarray |
         vertex = int(np.argwhere(bad)[0][0])
         raise InputError("path", f"{frame_where(frame, file)}: expected finite vertices, found "
                                  f"NaN/inf at vertex {vertex}")
+    check_magnitude(vertices[None], range(frame, frame + 1), lambda f: file)
+
+
+def check_magnitude(vertices: np.ndarray, frames: range, file_of) -> None:
+    """Raise InputError (param "path") naming the first vertex beyond `MAX_COORDINATE_CM`.
+
+    Args:
+        vertices: (F, V, 3) finite coordinates, cm, of run frames `frames`.
+        frames: the run frames of the rows (len F).
+        file_of: run frame -> the file to name in the error.
+    """
+    big = np.abs(vertices) > MAX_COORDINATE_CM
+    if big.any():
+        i, v, axis = (int(x) for x in np.argwhere(big)[0])
+        frame = frames[i]
+        raise InputError("path", f"{frame_where(frame, file_of(frame))}: expected vertex coordinates "
+                                 f"within +-{MAX_COORDINATE_CM:g} cm, found {float(vertices[i, v, axis]):g} "
+                                 f"at vertex {v} (a unit or export error?)")
+
+
+def check_mesh_file(mesh: MeshSequence, path: str, topology_file: str) -> None:
+    """Raise InputError (param "path") naming the file when a read mesh is unusable.
+
+    Checks what the file itself stores beyond its vertices: the frame rate (finite, > 0), the
+    faces ((T, 3) integer indices of existing vertices), uv and vertex groups.
+
+    Args:
+        mesh: the sequence as read.
+        path: the file (or pattern) it was read from, named for the frame rate.
+        topology_file: the file its faces, uv and groups came from (frame 0's for patterns).
+    """
+    fps = float(mesh.fps)
+    if not (np.isfinite(fps) and fps > 0):
+        raise InputError("path", f"file '{path}': expected the frame rate it stores ('fps') finite "
+                                 f"and > 0, found {fps:g}")
+    faces = np.asarray(mesh.faces)
+    count = mesh.vertices.shape[1]
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise InputError("path", f"file '{topology_file}': expected 'faces' (T, 3) integer vertex "
+                                 f"indices, found shape {faces.shape} {faces.dtype}")
+    bad = (faces < 0) | (faces >= count)
+    if bad.any():
+        t, corner = (int(x) for x in np.argwhere(bad)[0])
+        raise InputError("path", f"file '{topology_file}': expected face vertex indices in "
+                                 f"0..{count - 1} ({count} vertices), found {int(faces[t, corner])} in "
+                                 f"face {t} ({int(bad.any(axis=1).sum())} such faces)")
+    try:
+        mesh.validate(f"file '{topology_file}'")
+    except ValueError as err:
+        raise InputError("path", str(err)) from err

@@ -31,6 +31,7 @@ from nodegraph.files import atomic_path, files_value, write_npz_atomic
 
 from ._files import (check_frame_range, format_of, frame_where, npz_keys, npz_shape, read_npz_array,
                      read_npz_rows)
+from .mesh_frame import MAX_COORDINATE_CM
 
 __all__ = [
     "CONVENTION", "load_rigid_sequence", "save_rigid_sequence", "load_param_sequence",
@@ -149,6 +150,12 @@ def _check_rigid(matrices: np.ndarray, frames: range, path: str) -> None:
                                  f"block orthonormal with det +1, bottom row [0, 0, 0, 1]), found "
                                  f"max |R R^T - I| = {ortho[i]:.2e}, det R = "
                                  f"{np.linalg.det(rot[i]):.3f}, bottom row {matrices[i, 3].tolist()}")
+    far = np.abs(matrices[:, :3, 3]).max(axis=1, initial=0.0) > MAX_COORDINATE_CM
+    if far.any():
+        i = int(np.argmax(far))
+        raise InputError("path", f"{frame_where(frames[i], path)}: expected a translation within "
+                                 f"+-{MAX_COORDINATE_CM:g} cm, found {matrices[i, :3, 3].tolist()} "
+                                 "(a unit or export error?)")
 
 
 def load_rigid_sequence(path: str, frames: range | None = None) -> RigidSequence:
