@@ -295,6 +295,7 @@ class Node:
     Params: ClassVar[type[NodeParams]] = NodeParams
     inputs: ClassVar[dict[str, In]] = {}
     outputs: ClassVar[dict[str, Out]] = {}
+    cache_root: str | None = None  # the run's cache folder, set by the runner (None: no cache)
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

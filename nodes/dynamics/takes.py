@@ -176,10 +176,9 @@ class LoadTakes(Node):
     def run(self) -> dict:
         p = self.params
         found = find_takes(p.captures)
-        root = getattr(self, "cache_root", None)
         from nodegraph.cache import Cache
 
-        cache = Cache(root) if root else None
+        cache = Cache(self.cache_root) if self.cache_root else None
         reader = f"{self.type_name}/{self.version}/{self.code_hash()}/fps={p.fps!r}"
         names, meshes, skulls = [], [], []
         for i, (name, path, files) in enumerate(found):
@@ -309,9 +308,10 @@ class TrainRemovalTakes(Node):
                               "(by name) when there are at least two, '-' = none.")
         region: str = Param("", description="Vertex group of the takes to train on ('' = all vertices); "
                             "the network records it and then also cleans whole captures.")
-        target_window_s: float = Param(0.1, gt=0, description="Half-width of the moving average (s): "
-                                       "0.1 s averages at least a whole period of the slowest skin "
-                                       "modes (7.5 Hz and up) at any frame rate (the paper: 10 frames).")
+        target_window_s: float = Param(0.1, gt=0, description="Half-width of the moving average (s), "
+                                       "converted to frames at each take's rate: the 0.2 s average spans "
+                                       "a whole period of skin modes from 5 Hz up (the paper: 10 frames "
+                                       "at 128 fps, 0.08 s).")
         num_samples: int = Param(344, ge=1, description="Skin samples (farthest-point sampling of the "
                                  "neutral): the paper's count.")
         window: int = Param(10, ge=1, description="Half-size of the descriptor windows (samples).")
