@@ -3,6 +3,7 @@ file, never with a traceback."""
 
 from __future__ import annotations
 
+import functools
 import json
 import random
 from pathlib import Path
@@ -159,3 +160,153 @@ def test_shipped_graphs_are_valid(capsys):
     for path in GRAPHS:  # the JSON form survives a load and a dump unchanged
         text = Graph.load(path).dumps()
         assert Graph.from_json(json.loads(text)).dumps() == text, path
+
+
+# -- bad parameter values and bad files given to the shipped graphs on the command line -----------
+# Each case is refused with exit 2 before any heavy node runs (at validation, planning or the
+# first file read), naming the node and the parameter, and leaves none of the graph's outputs.
+
+@functools.lru_cache(maxsize=1)
+def _face_capture() -> dict:
+    """8 still frames of the ICT face region (the bundled removal network's topology)."""
+    import numpy as np
+
+    from nodes.io.face_model import load_face_model
+
+    face = load_face_model(region="face")
+    return {"vertices": np.repeat(face.neutral[None], 8, axis=0), "faces": face.faces, "fps": 30.0,
+            "rigid": np.repeat(np.eye(4)[None], 8, axis=0)}
+
+
+def _inputs(folder: Path) -> dict[str, Path]:
+    """Tiny good inputs and bad files of every kind a user mistypes."""
+    import numpy as np
+
+    from nodes.io.image import write_image
+
+    files = {"plates": folder / "plate.%04d.png", "capture": folder / "capture.npz",
+             "folder": folder / "a_folder", "garbage_npz": folder / "garbage.npz",
+             "garbage_png": folder / "garbage.0000.png", "text_mp4": folder / "notes.mp4",
+             "garbage_json": folder / "camera.json", "garbage_model": folder / "model.safetensors",
+             "empty_npz": folder / "empty.npz", "a_file": folder / "plain_file"}
+    for f in range(2):
+        write_image(folder / f"plate.{f:04d}.png", np.full((32, 40, 3), 90 + 40 * f, np.uint8),
+                    ["R", "G", "B"], "uint8")
+    rng = np.random.default_rng(3)
+    np.savez(files["capture"], vertices=rng.normal(size=(8, 24, 3)).astype(np.float32),
+             faces=(np.arange(60, dtype=np.int32) % 24).reshape(20, 3), fps=30.0,
+             rigid=np.repeat(np.eye(4)[None], 8, axis=0))
+    face = _face_capture()
+    files["face_capture"] = folder / "face_capture.npz"
+    np.savez(files["face_capture"], **face)
+    files["takes"] = folder / "takes"
+    files["takes"].mkdir()
+    np.savez(files["takes"] / "take_a.npz", **face)
+    from nodes.dynamics.files import BUNDLED_REMOVAL
+
+    files["model_file"] = BUNDLED_REMOVAL
+    files["folder"].mkdir()
+    files["garbage_npz"].write_bytes(b"PK\x03\x04 not really a zip")
+    files["garbage_png"].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    files["text_mp4"].write_text("not a video")
+    files["garbage_json"].write_text('{"fx": ')
+    files["garbage_model"].write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{}garbage")
+    files["empty_npz"].write_bytes(b"")
+    files["a_file"].write_text("a file, not a folder")
+    return files
+
+
+OUTPUTS = {  # every output parameter of the graph, set to a path under the test's folder
+    "landmarks": {"output": "out/landmarks.npz", "report": "out/overlays"},
+    "fit_video": {"output": "out/fit.npz", "report": "out/fit"},
+    "fit_video_temporal": {"output": "out/fit.npz", "report": "out/fit", "motion_report": "out/motion"},
+    "dynamics_remove": {"output": "out/quasistatic.npz"},
+    "dynamics_retarget": {"output": "out/retargeted.npz"},
+    "dynamics_train": {"model": "out/removal.safetensors", "synthesis_model": "out/synthesis.safetensors"},
+    "dynamics_train_captures": {"model": "out/removal.safetensors",
+                                "synthesis_model": "out/synthesis.safetensors", "report": "out/report.json"},
+}
+GOOD = {  # good inputs, by name in `_inputs`
+    "landmarks": {"images": "plates"},
+    "fit_video": {"images": "plates", "camera": ""},
+    "fit_video_temporal": {"images": "plates", "camera": ""},
+    "dynamics_remove": {"capture": "face_capture", "skull": "face_capture", "model": ""},
+    "dynamics_retarget": {"removal_model": "model_file", "synthesis_model": "model_file"},
+    "dynamics_train": {},
+    "dynamics_train_captures": {"captures": "takes", "neutral": "face_capture"},
+}
+# (graph, parameter, value (an `_inputs` name, "@name" for that file's path as an output, or a
+# literal), the node the error names)
+BAD_VALUES = [
+    ("landmarks", "images", "garbage_png", "frames"),
+    ("landmarks", "images", "text_mp4", "frames"),
+    ("landmarks", "images", "folder", "frames"),
+    ("landmarks", "images", "missing.%04d.png", "frames"),
+    ("landmarks", "face", "biggest", "track"),
+    ("landmarks", "face", "-1", "track"),
+    ("landmarks", "face", "[1, 2, 3]", "track"),
+    ("landmarks", "output", "out/landmarks.txt", "save"),
+    ("landmarks", "output", "@garbage_png", "save"),
+    ("landmarks", "report", "@a_file", "overlays"),
+    ("fit_video", "images", "garbage_png", "frames"),
+    ("fit_video", "camera", "garbage_json", "camera"),
+    ("fit_video", "camera", "folder", "camera"),
+    ("fit_video", "camera", "camera.txt", "camera"),
+    ("fit_video", "face", "centre_left", "detect"),
+    ("fit_video", "output", "out/fit.png", "save"),
+    ("fit_video", "report", "@a_file", "report"),
+    ("fit_video_temporal", "images", "text_mp4", "frames"),
+    ("fit_video_temporal", "camera", "garbage_json", "camera"),
+    ("fit_video_temporal", "output", "out/fit.json", "save"),
+    ("fit_video_temporal", "motion_report", "@a_file", "motion"),
+    ("dynamics_remove", "capture", "garbage_npz", "load"),
+    ("dynamics_remove", "capture", "empty_npz", "load"),
+    ("dynamics_remove", "capture", "missing.npz", "load"),
+    ("dynamics_remove", "skull", "garbage_npz", "skull"),
+    ("dynamics_remove", "model", "garbage_model", "network"),
+    ("dynamics_remove", "model", "model.pt", "network"),
+    ("dynamics_remove", "fps", "-1", "remove"),
+    ("dynamics_remove", "fps", "fast", "remove"),
+    ("dynamics_remove", "fps", "1e308", "remove"),
+    ("dynamics_remove", "output", "@face_capture", "save"),
+    ("dynamics_retarget", "removal_model", "garbage_model", "removal"),
+    ("dynamics_retarget", "synthesis_model", "missing.safetensors", "synthesis"),
+    ("dynamics_retarget", "region", "no_such_region", "face"),
+    ("dynamics_retarget", "max_vertices", "-5", "face"),
+    ("dynamics_retarget", "output", "out/retargeted.txt", "save"),
+    ("dynamics_train", "epochs", "-1", "train_removal"),
+    ("dynamics_train", "rows", "many", "train_removal"),
+    ("dynamics_train", "samples", "0", "train_removal"),
+    ("dynamics_train", "region", "no_such_region", "face"),
+    ("dynamics_train", "model", "out/removal.pt", "save_removal"),
+    ("dynamics_train", "synthesis_model", "@a_file", "save_synthesis"),
+    ("dynamics_train_captures", "captures", "missing/take_*.npz", "takes"),
+    ("dynamics_train_captures", "neutral", "garbage_npz", "neutral"),
+    ("dynamics_train_captures", "fps", "-1", "takes"),
+    ("dynamics_train_captures", "epochs", "2.5", "train"),
+    ("dynamics_train_captures", "model", "out/removal.txt", "save"),
+    ("dynamics_train_captures", "model", "@face_capture", "save"),
+]
+
+
+@pytest.mark.parametrize("graph, name, value, node", BAD_VALUES,
+                         ids=[f"{g}-{n}-{v}" for g, n, v, _ in BAD_VALUES])
+def test_bad_parameter_or_file_is_exit_2_and_writes_nothing(tmp_path, capsys, graph, name, value, node):
+    files = _inputs(tmp_path)
+    outputs = {k: tmp_path / v for k, v in OUTPUTS[graph].items()}
+    params = {k: str(files[v]) if v else "" for k, v in GOOD[graph].items()} | {k: str(v) for k, v in outputs.items()}
+    if value.startswith("@"):
+        params[name] = str(files[value[1:]])
+    else:
+        params[name] = str(files[value]) if value in files else (
+            str(tmp_path / value) if "/" in value or "." in value and not value[0].isdigit()
+            and not value.startswith("-") else value)
+    before = {p: p.read_bytes() for p in files.values() if p.is_file()}
+    argv = ["run", f"graphs/{graph}.json", *(f"{k}={v}" for k, v in params.items()),
+            "--no-cache", "--scheduler", "sync"]
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err and f"'{node}'" in err, err
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*")), err
+    assert {p: p.read_bytes() for p in files.values() if p.is_file()} == before  # inputs untouched

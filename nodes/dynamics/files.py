@@ -5,8 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from pydantic import field_validator
+
 from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, TorchModel
-from nodegraph.files import files_value
+from nodegraph.files import check_output_suffix, files_value
 from nodegraph.models import load_model, save_model
 
 __all__ = ["BUNDLED_REMOVAL", "SaveModel", "LoadModel"]
@@ -30,6 +32,11 @@ class SaveModel(Node):
     class Params(NodeParams):
         path: str = Param("out/dynamics_removal.safetensors", output_file=True,
                           description="output .safetensors (or .npz) file")
+
+        @field_validator("path")
+        @classmethod
+        def _suffix(cls, value: str) -> str:  # refused at validation, not after the training
+            return check_output_suffix(value, _SUFFIXES)
 
     model = In(TorchModel, doc="the network (dynamics.TrainRemoval / dynamics.TrainSynthesis)")
     files = Out(Files, doc="the written file and its sha256")
@@ -56,6 +63,11 @@ class LoadModel(Node):
         path: str = Param("", input_file=True, description=".safetensors (or .npz) model file; '' = the bundled "
                           "removal network for captures of the ICT head's 'face' region "
                           "(io.LoadFaceModel region 'face'), trained by graphs/dynamics_train.json")
+
+        @field_validator("path")
+        @classmethod
+        def _suffix(cls, value: str) -> str:
+            return check_output_suffix(value, _SUFFIXES, allow_empty=True)
 
     model = Out(TorchModel, doc="the network")
 

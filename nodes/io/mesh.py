@@ -26,7 +26,9 @@ import re
 import zipfile
 import zlib
 from pathlib import Path
+
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams,
                        Out, Param)
@@ -556,6 +558,16 @@ class SaveMeshSequence(Node):
         prim: str = Param("/mesh", description="USD only: path of the Mesh prim written.")
         compress: bool = Param(False, description="NPZ only: deflate the arrays (smaller file; "
                                "chunked loads then stream instead of memory-mapping).")
+
+        @field_validator("path")
+        @classmethod
+        def _writable_format(cls, value: str) -> str:  # refused at validation, not after the run
+            fmt = format_of(value, MESH_FORMATS)
+            numbered = frame_token(value) is not None
+            if numbered != (fmt in _PER_FRAME_FORMATS):
+                expected = f"a single .{fmt} file" if numbered else f"a numbered pattern such as face.%04d.{fmt}"
+                raise ValueError(f"expected {expected} for {fmt.upper()}, found '{value}'")
+            return value
 
     mesh = In(MeshSequence, doc="The sequence to write.")
     files = Out(Files, doc="Written paths and their sha256.")
