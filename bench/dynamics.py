@@ -133,13 +133,17 @@ def captures(args: argparse.Namespace) -> None:
         result = runner.run(graphs / "dynamics_train_captures.json", cache=root / "cache",
                             parameters={"captures": str(root / "takes" / "take_*.npz"),
                                         "neutral": str(root / "neutral.npz"), "model": str(root / "f.safetensors"),
+                                        "synthesis_model": str(root / "h.safetensors"),
                                         "report": str(root / "report.json")})
         train_s = time.perf_counter() - start
         assert result.exit_code == 0, result.summary()
-        report = json.loads((root / "report.json").read_text())
+        both = json.loads((root / "report.json").read_text())
+        report, synthesis = both["removal"], both["synthesis"]
         print(f"dynamics_train_captures.json: 24 takes ({report['frames']} training frames, 12 without rigid), "
-              f"{train_s:.0f} s; loss {report['loss_per_epoch'][0]:.4f} -> {report['final_loss']:.4f}; "
-              f"held-out take {report['held_out']['take']}: {report['held_out']['rms_before_mm']} -> "
+              f"{train_s:.0f} s (F {report['seconds']:.0f} s, H {synthesis['seconds']:.0f} s of training); F loss "
+              f"{report['loss_per_epoch'][0]:.4f} -> {report['final_loss']:.4f}, H loss "
+              f"{synthesis['loss_per_epoch'][0]:.4f} -> {synthesis['final_loss']:.4f}; held-out take "
+              f"{report['held_out']['take']}: {report['held_out']['rms_before_mm']} -> "
               f"{report['held_out']['rms_after_mm']} mm to its moving average")
         test = simulate_dynamics(face, motions=["oscillate@10"], expressions=["frown"], segment_frames=300,
                                  fps=110.0, seed=21)
