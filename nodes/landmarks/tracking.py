@@ -16,6 +16,10 @@ confident. When no detection overlaps the previous box by at least `min_iou` (an
 a cut, a missed detection) the frame has no face and the choice is applied afresh from the
 next frame on (the person is re-found).
 
+Following by landmarks (`nodes.landmarks.face_tracker`, `landmarks.TrackFaces`) uses
+`landmark_crop` (a face's crop from its points), `refind_face` (the detection where a lost face
+was last seen) and `FAILURE_REASONS`; `eye_gaze` is a per-eye gaze measure from the iris points.
+
 Boxes are (x0, y0, x1, y1) pixels, origin top-left, x right, y down. Pure numpy (no torch).
 """
 
@@ -25,8 +29,8 @@ from typing import Sequence, Union
 
 import numpy as np
 
-__all__ = ["FACE_CHOICES", "FAILURE_REASONS", "FaceChoice", "box_iou", "choose_face", "follow_faces", "refind_face", "landmark_crop", "EYE_CORNERS",
-           "eye_gaze"]
+__all__ = ["FACE_CHOICES", "FAILURE_REASONS", "FaceChoice", "box_iou", "choose_face", "follow_faces",
+           "refind_face", "landmark_crop", "EYE_CORNERS", "eye_gaze"]
 
 FACE_CHOICES = ("largest", "centre", "score")
 """The named choices of `choose_face`."""
