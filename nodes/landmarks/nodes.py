@@ -330,6 +330,8 @@ class TrackFaces(Node):
                                 "frame's points were): a crop that lags a moving face drifts off it.")
         roll_passes: int = Param(3, ge=0, description="Face-mesh passes that re-turn a detection's crop by the "
                                  "eye line of the points found (as `landmarks.FaceLandmarks`).")
+        with_iris: bool = Param(True, description="Run the iris model on both eyes of every frame read (`iris` "
+                                "NaN without): it costs about as much as the face mesh again (bench/detect_faces.py).")
 
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the networks).")
     boxes = Out(ParamSequence, doc="x0 y0 x1 y1: the square crop the points were read in, pixels (turned by "
@@ -342,7 +344,8 @@ class TrackFaces(Node):
                        "confidence = presence.")
     landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence.")
     presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (0 where failed).")
-    iris = Out(Landmarks2D, doc="(F, 10, 2) iris points, pixels (as `landmarks.FaceLandmarks`).")
+    iris = Out(Landmarks2D, doc="(F, 10, 2) iris points, pixels (as `landmarks.FaceLandmarks`; NaN where "
+               "failed or without `with_iris`).")
 
     def run(self, images: ImageSequence) -> dict[str, object]:
         from .face_tracker import track_faces
@@ -351,7 +354,8 @@ class TrackFaces(Node):
         out = track_faces(network_images(images), device=self.device, face=p.face, min_score=p.min_score,
                           iou=p.iou, min_face_px=p.min_face_px, pyramid_min_score=p.pyramid_min_score,
                           box_scale=p.box_scale, min_presence=p.min_presence, refind_frames=p.refind_frames,
-                          reread=p.reread, velocity=p.velocity, roll_passes=p.roll_passes, progress=self.progress)
+                          reread=p.reread, velocity=p.velocity, roll_passes=p.roll_passes, with_iris=p.with_iris,
+                          progress=self.progress)
         ok = (~out.failed).astype(np.float32)
         confidence = (out.presence * ok).astype(np.float32)[:, None]
         points = out.points.astype(np.float32)

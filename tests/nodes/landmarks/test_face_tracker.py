@@ -145,6 +145,9 @@ def test_track_faces_node_ports_and_the_npz(tmp_path):
         run_node(SaveLandmarks, {"path": str(tmp_path / "x.npz")}, boxes=out["boxes"], landmarks68=out["landmarks68"],
                  landmarks468=out["landmarks468"], presence=out["presence"], failed=out["failed"],
                  iris=out["landmarks68"])
+    without = run_node(TrackFaces, {"with_iris": False}, images=ImageSequence(video.frames[:1], colour_space="srgb"))
+    assert np.isnan(without["iris"].points).all()
+    np.testing.assert_array_equal(without["landmarks468"].points[0], out["landmarks468"].points[0])
     with pytest.raises(NodeError, match=r"'face': expected an index >= 0"):
         TrackFaces(face=-2)
     assert isinstance(out["reasons"], ParamSequence) and TrackFaces.kind.name == "sequence"
