@@ -47,6 +47,10 @@ Implementation notes (what makes it fast):
   - L-BFGS is our own (`lbfgs.py`, same algorithm as `torch.optim.LBFGS`): constructing a
     torch optimizer imports `torch._dynamo` (about 2 s per process).
 
+Last, every frame is re-aligned on the vertices still over the whole shot
+(`still_refinement`): frame by frame, expression motion smaller than the final width looks
+like noise; averaged over a few frames it does not.
+
 Conventions: cm, frames; `matrices[f]` is skull-to-world (`x_world = M_f x_skull`), so
 `r_f = M_f^-1`.
 """
@@ -70,7 +74,8 @@ from ..geometry.rigid import invert_rigid_torch
 from ..geometry.sampling import farthest_point_sampling_torch
 from .energy import EnergyData, block_energy, default_block_frames, fused_energy
 from .lbfgs import lbfgs
-from .robust import apply_transforms, noise_level, residual_scale, rest_mode, robust_align
+from .robust import (apply_transforms, noise_level, residual_scale, rest_mode,
+                     robust_align, still_vertices)
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, Stage, StageLog, make_schedule
 
 __all__ = ["ModePursuitResult", "AdaptivePlan", "adaptive_plan", "mode_pursuit"]
@@ -135,6 +140,44 @@ def _update_rest(x: Tensor, rot: Tensor, trans: Tensor, rest: Tensor, width: flo
             den += inside.sum(0)
         rest = rest + num / den.clamp(min=1.0)
     return rest
+
+
+def _still_refinement(verts: Tensor, candidates: Tensor, centre: Tensor, scale: float, rot: Tensor,
+                      trans: Tensor, prior: Tensor | None, *, sigma: float, width: float, window: int,
+                      iterations: int, max_points: int = 1 << 23) -> tuple[Tensor, Tensor]:
+    """Re-align every frame on the vertices that stay still over the whole shot.
+
+    The bounded penalty cannot tell noise from expression motion smaller than its width (about
+    5 noise std): at 0.1 cm noise, millimetres of expression motion count as rest and pull the
+    frames. Here every candidate vertex (not only the energy's sample; a strided subset when
+    F x V exceeds `max_points`) is stabilized by the current transforms, the vertices still up
+    to the noise over the whole shot are found (`robust.still_vertices`), their rest is their
+    mean, and each frame is aligned to it (`robust.robust_align` at the final width). Nothing
+    changes when fewer than max(10, V / 10) vertices are still.
+
+    Args:
+        verts: (F, V, 3) input vertices, cm. candidates: (N,) vertex indices to consider.
+        centre, scale: the optimizer's normalisation (x~ = (x - centre) / scale).
+        rot, trans: (F, 3, 3), (F, 3) current world-to-skull transforms (normalised units).
+        prior: (V,) vertex weights or None. sigma, width: noise std and final width (normalised).
+        window: frames averaged by the stillness test. iterations: IRLS steps.
+    Returns:
+        rot, trans (float64), refined or unchanged.
+    """
+    num_frames = verts.shape[0]
+    step = max(1, math.ceil(num_frames * candidates.numel() / max_points))
+    ids = candidates[::step]
+    dev = rot.device
+    x = ((verts[:, ids].to(torch.float64) - centre) / scale).to(dev, torch.float32).permute(0, 2, 1).contiguous()
+    stab = apply_transforms(x, rot, trans)
+    still = still_vertices(stab - stab.median(dim=0).values, sigma, window=window)
+    if int(still.sum()) < max(10, ids.numel() // 10):
+        return rot, trans
+    rest = stab.mean(dim=0)
+    del stab
+    weights = still.to(x.dtype) if prior is None else prior[ids].to(dev) * still.to(x.dtype)
+    aligned = robust_align(x, rest, rot, trans, width, iterations=max(iterations, 1), vertex_weights=weights)
+    return aligned.rot, aligned.trans
 
 
 # --------------------------------------------------------------------------------------
@@ -308,7 +351,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
                  velocity_weight: float = 1.0, spacing: float = 8.0, refinements: int = 2,
                  iterations: int | None = None, max_vertices: int = 2000, update_rest: bool = True,
                  noise_multiple: float = 5.0, min_width: float = 0.02, init_rounds: int = 6,
-                 polish_iterations: int = 3,
+                 polish_iterations: int = 3, still_refinement: bool = True, still_window: int = 15,
                  history_size: int = 10, device: str | torch.device | None = "auto",
                  compile: bool = False, progress: ProgressFn | None = None) -> ModePursuitResult:
     """Stabilize a tracked mesh sequence by mode pursuit (see the module docstring).
@@ -349,6 +392,14 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         init_rounds: "adaptive": rounds of robust per-frame alignment and rest estimation.
         polish_iterations: "adaptive": IRLS steps of the final per-frame robust alignment to
             the rest at the final width (0 = none).
+        still_refinement: "adaptive": after the polish, re-align every frame on the vertices
+            (all of `vertex_ids`, not only the energy's sample) that stay still up to the
+            estimated noise over the whole shot (`robust.still_vertices`). At 0.1 cm noise the
+            final width (0.5 cm) lets millimetres of expression motion count as rest; this
+            step removes that bias (whole ICT head, 150 frames: median 0.0045 -> 0.0013 cm,
+            Procrustes on the 'rigid' group 0.0053). Needs F >= 30.
+        still_window: frames averaged by the stillness test (noise averages out, expressions
+            do not); at most F / 10, so the shot holds at least 10 windows.
         history_size: L-BFGS memory.
         device: "auto" (CUDA when available), "cpu", "cuda" or a torch device.
         compile: run the block kernel through `torch.compile` (pays a one-off compile).
@@ -420,6 +471,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
             raise ValueError(f"init: expected shape ({num_frames}, 4, 4), found {tuple(init_t.shape)}")
         world_to_skull = invert_rigid_torch(init_t.cpu())
 
+    candidates = ids
     if ids.numel() > max_vertices:
         # Spread is rigid-invariant, so the first frame (world) serves as the shape to sample.
         ids = ids[farthest_point_sampling_torch(verts[0, ids], max_vertices)]
@@ -517,6 +569,12 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         aligned = robust_align(x, rest_x, rot.to(dev), trans.to(dev), final_width / scale,
                                iterations=polish_iterations, vertex_weights=weights_e)
         rot, trans = aligned.rot, aligned.trans
+        # at least 10 windows over the shot, so the stillness statistic is not noise itself
+        window = min(still_window, num_frames // 10)
+        if still_refinement and plan is not None and plan.noise_cm > 0 and window >= 3:
+            rot, trans = _still_refinement(verts, candidates, centre, scale, rot, trans, prior,
+                                           sigma=plan.noise_cm / scale, width=final_width / scale,
+                                           window=window, iterations=polish_iterations)
         if progress is not None:
             progress(1.0, f"polished every frame: robust alignment to the rest at {final_width:.3g} cm")
 
