@@ -21,8 +21,9 @@ import numpy as np
 from nodegraph import Camera, FaceModel, Param, Performance
 from nodegraph.files import atomic_path
 
+from ..geometry.mesh import vertex_normals
+from ..geometry.rotation import quat_sequence_continuous, rotmat_to_quat
 from .scene import SceneWriter, SceneWriterParams, blendshapes, head_transforms
-from .usd import vertex_normals
 
 __all__ = ["split_uv_seams", "write_gltf_animation", "GltfAnimation"]
 
@@ -94,7 +95,6 @@ def write_gltf_animation(path: str | Path, model: FaceModel, performance: Perfor
         asymmetry: write the asymmetry shapes that make ICT's split shapes exact.
     """
     import pygltflib as gl
-    from scipy.spatial.transform import Rotation
 
     shapes = blendshapes(performance, model, asymmetry=asymmetry)
     rigid = head_transforms(performance, camera)
@@ -104,7 +104,8 @@ def write_gltf_animation(path: str | Path, model: FaceModel, performance: Perfor
     positions = (model.neutral[source] * M_PER_CM).astype(np.float32)
     attributes = gl.Attributes(
         POSITION=pack.add(positions, gl.VEC3, target=_ARRAY_BUFFER, bounds=True),
-        NORMAL=pack.add(vertex_normals(model.neutral, model.faces)[source], gl.VEC3, target=_ARRAY_BUFFER))
+        NORMAL=pack.add(vertex_normals(model.neutral, model.faces)[source].astype(np.float32), gl.VEC3,
+                        target=_ARRAY_BUFFER))
     if uv_index is not None:
         uv = np.asarray(model.uv, np.float32)[uv_index]
         attributes.TEXCOORD_0 = pack.add(np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1).astype(np.float32), gl.VEC2,
@@ -117,8 +118,8 @@ def write_gltf_animation(path: str | Path, model: FaceModel, performance: Perfor
                    extras={"targetNames": list(shapes.names)})
 
     times = (np.arange(f) / float(performance.fps)).astype(np.float32)
-    quats = Rotation.from_matrix(rigid[:, :3, :3]).as_quat().astype(np.float32) if f else np.zeros((0, 4), np.float32)
-    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    wxyz = quat_sequence_continuous(rotmat_to_quat(rigid[:, :3, :3])) if f else np.zeros((0, 4))
+    quats = wxyz[:, [1, 2, 3, 0]].astype(np.float32)  # glTF's order: x, y, z, w
     translation = (rigid[:, :3, 3] * M_PER_CM).astype(np.float32)
     time_acc = pack.add(times, gl.SCALAR, bounds=True)
     samplers = [gl.AnimationSampler(input=time_acc, output=pack.add(shapes.weights.reshape(-1), gl.SCALAR),

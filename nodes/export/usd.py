@@ -23,27 +23,18 @@ import numpy as np
 from nodegraph import Camera, FaceModel, Param, Performance
 from nodegraph.files import atomic_path
 
+from ..geometry.mesh import vertex_normals
+from ..geometry.rotation import quat_sequence_continuous, rotmat_to_quat
 from .scene import SceneWriter, SceneWriterParams, blendshapes, head_transforms
 
-__all__ = ["vertex_normals", "write_usd_animation", "UsdAnimation"]
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals of a triangle mesh (trimesh's), float32."""
-    import trimesh
-
-    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
-    return np.asarray(mesh.vertex_normals, np.float32)
+__all__ = ["write_usd_animation", "UsdAnimation"]
 
 
 def _quaternions_wxyz(rotation: np.ndarray) -> np.ndarray:
-    """(F, 3, 3) rotations -> (F, 4) unit quaternions (w, x, y, z)."""
-    from scipy.spatial.transform import Rotation
-
+    """(F, 3, 3) rotations -> (F, 4) unit quaternions (w, x, y, z), sign-continuous over the frames."""
     if not len(rotation):
         return np.zeros((0, 4))
-    xyzw = Rotation.from_matrix(np.asarray(rotation, np.float64)).as_quat()
-    return np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    return quat_sequence_continuous(rotmat_to_quat(rotation))
 
 
 def write_usd_animation(path: str | Path, model: FaceModel, performance: Performance,
@@ -104,7 +95,7 @@ def write_usd_animation(path: str | Path, model: FaceModel, performance: Perform
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1).astype(np.int32)))
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(vertex_normals(model.neutral, faces)))
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(vertex_normals(model.neutral, faces).astype(np.float32)))
     mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     lo, hi = model.neutral.min(0), model.neutral.max(0)
     mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*lo.tolist()), Gf.Vec3f(*hi.tolist())]))

@@ -1,11 +1,37 @@
-"""Mesh connectivity shared by the areas: edges of a triangle mesh (or a k-nearest-neighbour graph of
-a point set) and the uniform graph Laplacian over them. numpy / scipy; pure functions."""
+"""Mesh geometry shared by the areas: area-weighted vertex normals, edges of a triangle mesh (or a
+k-nearest-neighbour graph of a point set) and the uniform graph Laplacian over them. numpy / scipy;
+pure functions. (The renderer's differentiable torch normals live in nodes/render/renderer.py.)"""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["vertex_neighbours", "uniform_laplacian"]
+__all__ = ["vertex_normals", "vertex_neighbours", "uniform_laplacian"]
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Return area-weighted unit vertex normals.
+
+    Args:
+        vertices: (V, 3) float, cm.
+        faces: (T, 3) int vertex indices, counter-clockwise seen from outside.
+    Returns:
+        (V, 3) float64 unit normals; zero rows for vertices in no face (or only in
+        zero-area faces).
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices: expected shape (V, 3), found {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"faces: expected shape (T, 3), found {faces.shape}")
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    face_n = np.cross(b - a, c - a)  # length = 2 * area: area weighting for free
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_n)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
 
 def vertex_neighbours(rest: np.ndarray, faces: np.ndarray, *, k: int = 6) -> np.ndarray:

@@ -31,7 +31,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "skew", "axis_angle_to_rotmat", "rotmat_to_axis_angle", "axis_angle_to_quat",
-    "quat_to_axis_angle", "quat_to_rotmat", "rotmat_to_quat", "quat_mean", "euler_to_rotmat", "rotmat_to_euler",
+    "quat_to_axis_angle", "quat_to_rotmat", "rotmat_to_quat", "quat_mean", "quat_sequence_continuous",
+    "euler_to_rotmat", "rotmat_to_euler",
     "skew_torch", "axis_angle_to_rotmat_torch", "quat_to_rotmat_torch", "rotmat_to_quat_torch",
 ]
 
@@ -303,6 +304,26 @@ def quat_mean(quats: np.ndarray, weights: np.ndarray) -> np.ndarray:
     _, vecs = np.linalg.eigh(m)
     q = vecs[..., :, -1]
     return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_sequence_continuous(quats: np.ndarray) -> np.ndarray:
+    """Flip signs along a sequence so that consecutive quaternions lie in one hemisphere.
+
+    `q` and `-q` are the same rotation, but an animation curve that interpolates its keys
+    component-wise (or a slerp that does not pick the shorter arc) turns the long way round
+    between `q` and a neighbour near `-q`. Each quaternion keeps or flips its sign so that
+    `q_i . q_(i-1) >= 0`, the first one as given.
+
+    Args:
+        quats: (F, 4) quaternions (any order of components, any signs).
+    Returns:
+        (F, 4) the same rotations, float64, sign-continuous along F.
+    """
+    q = np.asarray(quats, np.float64)
+    if q.ndim != 2 or q.shape[1] != 4:
+        raise ValueError(f"quats: expected shape (F, 4), found {q.shape}")
+    flips = np.where((q[1:] * q[:-1]).sum(1) < 0, -1.0, 1.0)
+    return q * np.concatenate([[1.0], np.cumprod(flips)])[:, None]
 
 
 # -- Euler angles -----------------------------------------------------------------------------

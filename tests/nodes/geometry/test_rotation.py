@@ -165,3 +165,19 @@ def test_torch_twins_match_numpy():
 
 def test_docstring_examples():
     assert doctest.testmod(rotation).failed == 0
+
+
+def test_quat_sequence_continuous_keeps_consecutive_quaternions_in_one_hemisphere():
+    from nodes.geometry.rotation import quat_sequence_continuous
+
+    angles = np.linspace(0.0, 4 * np.pi, 97)  # two turns about a tilted axis: w changes sign twice
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    canonical = rotmat_to_quat(axis_angle_to_rotmat(angles[:, None] * axis))  # w >= 0: jumps to -q
+    assert ((canonical[1:] * canonical[:-1]).sum(1) < 0).sum() >= 1
+    smooth = quat_sequence_continuous(canonical)
+    assert ((smooth[1:] * smooth[:-1]).sum(1) > 0).all()
+    np.testing.assert_allclose(np.abs(smooth), np.abs(canonical), atol=0)  # only signs change
+    np.testing.assert_allclose(quat_to_rotmat(smooth), quat_to_rotmat(canonical), atol=1e-15)
+    np.testing.assert_array_equal(smooth[0], canonical[0])
+    with pytest.raises(ValueError, match=r"expected shape \(F, 4\)"):
+        quat_sequence_continuous(canonical[:, :3])
