@@ -16,6 +16,8 @@ import numpy as np
 
 from nodegraph import Camera, FaceModel
 
+from ..geometry.rotation import axis_angle_to_rotmat, euler_to_rotmat
+
 __all__ = ["orbit_camera", "random_face_parameters", "render_plates"]
 
 SYNTHETIC_IDENTITY_SEED = 918_273
@@ -27,10 +29,8 @@ def orbit_camera(base: Camera, yaw_deg: float, centre_cm: Sequence[float], name:
 
     The camera keeps looking at the centre; positive yaw moves it to the camera's right (+x).
     """
-    from scipy.spatial.transform import Rotation
-
     centre = np.asarray(centre_cm, np.float64)
-    turn = Rotation.from_euler("y", -yaw_deg, degrees=True).as_matrix()
+    turn = axis_angle_to_rotmat(np.array([0.0, -np.deg2rad(yaw_deg), 0.0]))
     e0 = base.world_to_camera
     rot = e0[:3, :3] @ turn.T  # camera axes turned about the centre
     cam_centre = centre + turn @ (base.camera_to_world()[:3, 3] - centre)
@@ -51,14 +51,12 @@ def random_face_parameters(model: FaceModel, frames: int, seed: int, *, max_yaw_
         (jawOpen in [0, max_jaw] and two mouth shapes in [0, 0.4] per frame), yaw_deg (F,),
         albedo_tint (3,), light dict (ambient (3,), direction (3,), intensity), background (3,).
     """
-    from scipy.spatial.transform import Rotation
-
     rng = np.random.default_rng(SYNTHETIC_IDENTITY_SEED + seed)
     identity = rng.normal(0.0, 1.0, model.identity_deltas.shape[0]).astype(np.float32)
     yaw = rng.uniform(-max_yaw_deg, max_yaw_deg, frames)
     pitch = rng.uniform(-max_pitch_deg, max_pitch_deg, frames)
     roll = rng.uniform(-max_roll_deg, max_roll_deg, frames)
-    r_model = Rotation.from_euler("YXZ", np.stack([yaw, pitch, roll], 1), degrees=True).as_matrix()
+    r_model = euler_to_rotmat(np.deg2rad(np.stack([yaw, pitch, roll], 1)), "YXZ")
     rotation = np.diag([1.0, -1.0, -1.0])[None] @ r_model
     translation = np.stack([rng.uniform(-2, 2, frames), rng.uniform(-2, 2, frames),
                             distance_cm + rng.uniform(-3, 3, frames)], 1)
