@@ -286,6 +286,7 @@ BAD_VALUES = [
     ("dynamics_train_captures", "epochs", "2.5", "train"),
     ("dynamics_train_captures", "model", "out/removal.txt", "save"),
     ("dynamics_train_captures", "model", "@face_capture", "save"),
+    ("dynamics_train_captures", "report", "out/report.npz", "report"),
 ]
 
 

@@ -36,10 +36,11 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import (SEQUENCE, Files, In, InputError, JsonValue, MeshSequence, Node, NodeParams, Out,
                        Param, RigidSequence, Table, TorchModel)
-from nodegraph.files import file_sha256, files_value, write_text_atomic
+from nodegraph.files import check_output_suffix, file_sha256, files_value, write_text_atomic
 from nodegraph.takes import Takes, cached_take
 
 from ..geometry.rigid import fit_rigid, stabilize_vertices
@@ -504,6 +505,11 @@ class SaveReport(Node):
     class Params(NodeParams):
         path: str = Param("out/dynamics/train_report.json", output_file=True,
                           description="Output JSON file ('' = write nothing, only the table).")
+
+        @field_validator("path")
+        @classmethod
+        def _suffix(cls, value: str) -> str:  # refused at validation, not after the training
+            return check_output_suffix(value, [".json"], allow_empty=True)
 
     report = In(JsonValue, doc="The removal network's report (dynamics.TrainRemovalTakes).")
     synthesis = In(JsonValue, optional=True, doc="The synthesis network's report (dynamics.TrainSynthesisTakes).")
