@@ -1,0 +1,161 @@
+"""Batched damped least squares (Levenberg-Marquardt) with one damping schedule.
+
+Minimizes, independently for each batch element b, the sum of squares
+`C_b(x_b) = |r_b(x_b)|^2` of residuals r_b (M,) in unknowns x_b (P,). Pure torch, batched
+over a leading dimension B, in the manner of kornia/roma: the caller supplies the residuals
+and their normal equations (or a Jacobian, through `from_jacobian`); bounds, priors and
+penalties are residuals of the caller's (a prior `sqrt(lambda) (x - x0)`, a bound's
+quadratic penalty), or a projection in `retract`.
+
+The schedule (Marquardt 1963, with Nielsen's accept/reject bookkeeping; one for every fitter):
+- step: `(J^T J + lambda_b diag(J^T J) + floor I) dx = -J^T r`, with diag(J^T J) clamped to
+  at least `diag_floor` (an unobserved unknown still gets a damped, finite step) and `floor`
+  a Tikhonov term that keeps a flat valley's system regular;
+- gain: the actual relative decrease `(C(x) - C(x + dx)) / C(x)`; a step is *accepted* for an
+  element when it lowers its cost, and then `lambda_b <- max(lambda_b down, lambda_min)`,
+  else *rejected*, `lambda_b <- min(lambda_b up, lambda_max)`, and retried (the Jacobian
+  kept) up to `tries` times in one iteration while no element improved;
+- stopping: an element stops when an accepted step lowers its cost by less than `rel_tol`
+  relative; the solve stops after `iterations` iterations, when every element has stopped, or
+  (with `stop_when_stuck`) when an iteration's `tries` tries improved no element.
+
+Each iteration costs one linearization and one to `tries` residual evaluations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["LMSchedule", "LMResult", "damped_step", "from_jacobian", "levenberg_marquardt"]
+
+
+@dataclass(frozen=True)
+class LMSchedule:
+    """The damping schedule's constants (see the module docstring).
+
+    Attributes:
+        lam0: initial lambda (relative to diag(J^T J)).
+        down, up: lambda's factor after an accepted and after a rejected step.
+        lam_min, lam_max: lambda's bounds.
+        tries: rejected steps retried within one iteration (Jacobian kept).
+        rel_tol: an element stops when an accepted step gains less than this (relative cost).
+        diag_floor: lower bound of diag(J^T J) in the damping.
+        floor: Tikhonov term added to the normal matrix (unit: the cost's per unit x^2).
+        stop_when_stuck: end the solve when an iteration improved no element.
+    """
+
+    lam0: float = 1e-3
+    down: float = 0.3
+    up: float = 10.0
+    lam_min: float = 1e-7
+    lam_max: float = 1e8
+    tries: int = 6
+    rel_tol: float = 1e-4
+    diag_floor: float = 1e-9
+    floor: float = 1e-9
+    stop_when_stuck: bool = True
+
+
+class LMResult(NamedTuple):
+    """x: (B, P) the solution; residuals: (B, M) at x; cost: (B,) |r|^2 at x; lam: (B,) the final
+    damping; iterations: how many linearizations ran."""
+
+    x: Tensor
+    residuals: Tensor
+    cost: Tensor
+    lam: Tensor
+    iterations: int
+
+
+def damped_step(jtj: Tensor, jtr: Tensor, lam: Tensor, *, diag_floor: float = 1e-9, floor: float = 1e-9) -> Tensor:
+    """The Levenberg-Marquardt step of B damped normal equations.
+
+    Args:
+        jtj: (B, P, P) J^T J; jtr: (B, P) J^T r; lam: (B,) damping relative to diag(J^T J).
+        diag_floor: lower clamp of diag(J^T J); floor: added to the diagonal (Tikhonov).
+    Returns:
+        (B, P) dx solving (J^T J + lam diag(J^T J) + floor I) dx = -J^T r.
+    """
+    p = jtj.shape[-1]
+    eye = torch.eye(p, dtype=jtj.dtype, device=jtj.device)
+    diag = torch.diagonal(jtj, dim1=-2, dim2=-1).clamp_min(diag_floor)
+    a = jtj + (lam[:, None] * diag)[:, :, None] * eye
+    if floor:
+        a = a + floor * eye
+    return -torch.linalg.solve(a, jtr[..., None])[..., 0]
+
+
+def from_jacobian(jacobian: Callable[[Tensor], Tensor]) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
+    """Normal equations `(J^T J, J^T r)` ((B, P, P), (B, P)) from a Jacobian callback x (B, P) -> (B, M, P)."""
+
+    def normal(x: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+        jac = jacobian(x)
+        jt = jac.transpose(1, 2)
+        return jt @ jac, (jt @ r[..., None])[..., 0]
+
+    return normal
+
+
+def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
+                        normal: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x0: Tensor, *,
+                        iterations: int, schedule: LMSchedule = LMSchedule(),
+                        retract: Callable[[Tensor, Tensor], Tensor] | None = None,
+                        relinearize: Callable[[Tensor, Tensor], Tensor] | None = None) -> LMResult:
+    """Minimize |r_b(x_b)|^2 per batch element by Levenberg-Marquardt (module docstring).
+
+    Args:
+        residuals: x (B, P) -> (B, M) residuals (any float dtype; float64 recommended where the
+            valley is flat: the normal equations square the condition number).
+        normal: (x (B, P), r (B, M)) -> (J^T J (B, P, P), J^T r (B, P)) at x; `from_jacobian`
+            builds it from a Jacobian callback.
+        x0: (B, P) start.
+        iterations: at most this many linearizations.
+        schedule: the damping schedule's constants.
+        retract: (x, dx) -> x' applying a step (default x + dx); e.g. a projection onto bounds.
+        relinearize: (x, accepted (B,) bool) -> x, called after each iteration with an accepted
+            step: the caller moves its linearization point (e.g. folds a rotation increment into
+            its base rotation and zeroes it in x) and returns the equivalent x; the residuals
+            at the returned x must equal those at the given x.
+    Returns:
+        LMResult (x, residuals, cost, lam, iterations).
+    """
+    s = schedule
+    x = x0
+    b = x.shape[0]
+    r = residuals(x)
+    cost = (r * r).sum(1)
+    lam = torch.full((b,), s.lam0, dtype=x.dtype, device=x.device)
+    running = torch.ones(b, dtype=torch.bool, device=x.device)
+    done = 0
+    for _ in range(iterations):
+        done += 1
+        jtj, jtr = normal(x, r)
+        better = torch.zeros_like(running)
+        for _try in range(s.tries):
+            step = damped_step(jtj, jtr, lam, diag_floor=s.diag_floor, floor=s.floor)
+            x_new = x + step if retract is None else retract(x, step)
+            r_new = residuals(x_new)
+            cost_new = (r_new * r_new).sum(1)
+            better = (cost_new < cost) & running
+            lam = torch.where(better, (lam * s.down).clamp_min(s.lam_min),
+                              torch.where(running, (lam * s.up).clamp_max(s.lam_max), lam))
+            if bool(better.any()):
+                break
+        if not bool(better.any()):
+            if s.stop_when_stuck:
+                break
+            continue
+        gain = (cost - cost_new) / cost.clamp_min(1e-12)
+        running = running & ~(better & (gain < s.rel_tol))
+        x = torch.where(better[:, None], x_new, x)
+        r = torch.where(better[:, None], r_new, r)
+        cost = torch.where(better, cost_new, cost)
+        if relinearize is not None:
+            x = relinearize(x, better)
+        if not bool(running.any()):
+            break
+    return LMResult(x, r, cost, lam, done)
