@@ -111,7 +111,10 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
         residuals: x (B, P) -> (B, M) residuals (any float dtype; float64 recommended where the
             valley is flat: the normal equations square the condition number).
         normal: (x (B, P), r (B, M)) -> (J^T J (B, P, P), J^T r (B, P)) at x; `from_jacobian`
-            builds it from a Jacobian callback.
+            builds it from a Jacobian callback. Where linearizing changes the residual function
+            itself (a mask or an anchoring taken at x, held for the iteration's trial steps) it
+            returns (J^T J, J^T r, r') with r' (B, M) the residuals at x under the new
+            linearization, which replace r (and the cost the trial steps must beat).
         x0: (B, P) start.
         iterations: at most this many linearizations.
         schedule: the damping schedule's constants.
@@ -133,7 +136,11 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
     done = 0
     for _ in range(iterations):
         done += 1
-        jtj, jtr = normal(x, r)
+        linear = normal(x, r)
+        jtj, jtr = linear[0], linear[1]
+        if len(linear) == 3:
+            r = linear[2]
+            cost = (r * r).sum(1)
         better = torch.zeros_like(running)
         for _try in range(s.tries):
             step = damped_step(jtj, jtr, lam, diag_floor=s.diag_floor, floor=s.floor)
@@ -152,6 +159,9 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
         gain = (cost - cost_new) / cost.clamp_min(1e-12)
         running = running & ~(better & (gain < s.rel_tol))
         x = torch.where(better[:, None], x_new, x)
+        if r_new.shape[1] != r.shape[1]:  # the residual count follows x (a coverage): pad with zeros,
+            m = max(r_new.shape[1], r.shape[1])  # which leave every cost unchanged
+            r_new, r = (torch.nn.functional.pad(v, (0, m - v.shape[1])) for v in (r_new, r))
         r = torch.where(better[:, None], r_new, r)
         cost = torch.where(better, cost_new, cost)
         if relinearize is not None:

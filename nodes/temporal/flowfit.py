@@ -12,7 +12,9 @@ neighbours; `nodes.flow.geometric` gives the render flow G)::
 (the neighbour is there and not failed). Unknowns: rotation (axis-angle, rad), translation
 (cm) and optionally some expression weights; the prior scales are 0.01 rad, 0.1 cm and 0.1.
 
-Solver: Levenberg-Marquardt with a fixed iteration count, per frame (frames never share a
+Solver: Levenberg-Marquardt (`nodes.geometry.lm`: one try per iteration, lambda x 0.3 on an
+accepted step and x 10 on a rejected one, weights projected onto [0, 1]) with a fixed
+iteration count, per frame (frames never share a
 line search or a damping factor; the nodes solve one frame per call, so a frame's result
 does not depend on which frames are solved with it: chunk-invariance of the windowed
 nodes). The Jacobian is by
@@ -24,16 +26,19 @@ Torch at module level: import from node `run()` methods only.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry.lm import LMSchedule, levenberg_marquardt
+from ..geometry.lm import LMSchedule, levenberg_marquardt
 from ..geometry.rotation import axis_angle_to_rotmat_torch as axis_angle_to_rotmat
 from ..flow.geometric import Coverage, coverage, surface_flow
 
-__all__ = ["FlowModel", "Terms", "solve_frames", "frame_energies", "PRIOR_SCALES"]
+__all__ = ["FlowModel", "Terms", "solve_frames", "frame_energies", "PRIOR_SCALES", "FLOW_SCHEDULE"]
 
 PRIOR_SCALES = (0.01, 0.1, 0.1)
 """Units of the prior: rotation 0.01 rad, translation 0.1 cm, weights 0.1."""
@@ -239,9 +244,22 @@ def _jacobian_fd(f, z: Tensor, caches: tuple, terms: Terms, model: FlowModel, h:
     return ((r[:, 0] - r[:, 1]) / (2 * h)).transpose(1, 2)
 
 
+FLOW_SCHEDULE = LMSchedule(lam0=1e-3, down=0.3, up=10.0, lam_min=0.0, lam_max=float("inf"), tries=1, rel_tol=0.0,
+                            diag_floor=1e-12, floor=0.0, stop_when_stuck=False)
+"""`nodes.geometry.lm`'s schedule for the plate-flow solves: lambda x 0.3 after a step that lowers
+the frame's energy, x 10 otherwise, one trial step per iteration and no stopping rule (a fixed
+count of iterations: each costs a rasterization and 2P + 1 batched residual evaluations, and a
+node's `iterations` parameter says how many), no bounds on lambda, no Tikhonov floor."""
+
+
 def solve_frames(model: FlowModel, x0: Tensor, terms: Terms, *, iterations: int = 8,
                  damping: float = 1e-3) -> Tensor:
     """Minimize E_i for B frames independently (module docstring) by Levenberg-Marquardt.
+
+    `nodes.geometry.lm` with `FLOW_SCHEDULE`; the weights are projected onto [0, 1] after
+    every step (the solver's `retract`). The residuals are re-defined at each linearization
+    point x: the frame's own coverage (which triangle is under which pixel) is rasterized at x,
+    and a trial step x' is evaluated with the coverage at x' (so the residual count changes).
 
     Args:
         model: the FlowModel (its `free` unknowns move).
@@ -252,50 +270,52 @@ def solve_frames(model: FlowModel, x0: Tensor, terms: Terms, *, iterations: int 
     Returns:
         (B, 6 + K) float64 solved parameters; weights clamped to [0, 1].
     """
-    x = x0.clone()
-    b = x.shape[0]
-    p = len(model.free)
-    e, k = model.cam(b)
+    free = model.free
     cov_prev = model.cover(terms.prev_x)
     c_prev = model.corners(terms.prev_x, cov_prev)
-    lam = torch.full((b,), damping, dtype=x.dtype, device=x.device)
-    eye = torch.eye(p, dtype=x.dtype, device=x.device)
-    is_weight = (model.free >= 6)
+    is_weight = free >= 6
 
-    def setup(xc: Tensor) -> tuple[Coverage, Tensor, _Posable, _Posable]:
+    def full(z: Tensor) -> Tensor:
+        return x0.index_copy(1, free, z)
+
+    def setup(z: Tensor) -> tuple[Coverage, Tensor, _Posable, _Posable]:
+        """Coverage of the frame's own render at z and what the residuals need at z."""
+        xc = full(z)
         cov_self = model.cover(xc)
         return cov_self, model.corners(terms.next_x, cov_self), model.prepare(xc, cov_prev), \
             model.prepare(xc, cov_self)
 
-    state = setup(x)
-    for _ in range(iterations):
-        z = x.index_select(1, model.free)
-        cov_self, c_next, pose_prev, pose_self = state
+    seen: dict[str, tuple[Tensor, tuple]] = {}  # the last trial point's set-up, reused when it is accepted
 
-        def f(zz: Tensor) -> Tensor:
-            return _residuals(model, zz, terms, cov_prev, cov_self, c_prev, c_next, pose_prev, pose_self)
+    def state_at(z: Tensor) -> tuple:
+        if "trial" in seen and torch.equal(seen["trial"][0], z):
+            return seen["trial"][1]
+        if "at" in seen and torch.equal(seen["at"][0], z):
+            return seen["at"][1]
+        return setup(z)
 
-        r = f(z)
-        jac = _jacobian_fd(f, z, (cov_prev, cov_self, c_prev, c_next, pose_prev, pose_self), terms, model)
-        jtj = jac.transpose(1, 2) @ jac
-        jtr = (jac.transpose(1, 2) @ r[..., None])[..., 0]
-        cost = (r * r).sum(1)
-        diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-12)
-        step = torch.linalg.solve(jtj + lam[:, None, None] * torch.diag_embed(diag), -jtr[..., None])[..., 0]
+    def residuals(z: Tensor) -> Tensor:
+        state = state_at(z)
+        seen["trial"] = (z, state)
+        return _residuals(model, z, terms, cov_prev, state[0], c_prev, *state[1:])
+
+    def normal(z: Tensor, _r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        state = state_at(z)
+        seen["at"] = (z, state)
+        caches = (cov_prev, state[0], c_prev, *state[1:])
+        r = _residuals(model, z, terms, *caches)
+        jac = _jacobian_fd(None, z, caches, terms, model)
+        jt = jac.transpose(1, 2)
+        return jt @ jac, (jt @ r[..., None])[..., 0], r
+
+    def retract(z: Tensor, step: Tensor) -> Tensor:
         z_new = z + step
-        z_new = torch.where(is_weight, z_new.clamp(0.0, 1.0), z_new)
-        x_new = x.index_copy(1, model.free, z_new)
-        new_state = setup(x_new)
-        r_new = _residuals(model, z_new, terms, cov_prev, new_state[0], c_prev, new_state[1], new_state[2],
-                           new_state[3])
-        better = (r_new * r_new).sum(1) < cost
-        x = torch.where(better[:, None], x_new, x)
-        lam = torch.where(better, lam * 0.3, lam * 10.0)
-        if bool(better.all()):
-            state = new_state
-        elif bool(better.any()):
-            state = setup(x)
-    return x
+        return torch.where(is_weight, z_new.clamp(0.0, 1.0), z_new)
+
+    schedule = dataclasses.replace(FLOW_SCHEDULE, lam0=damping)
+    out = levenberg_marquardt(residuals, normal, x0.index_select(1, free), iterations=iterations,
+                              schedule=schedule, retract=retract)
+    return full(out.x)
 
 
 def frame_energies(model: FlowModel, x: Tensor, terms: Terms) -> Tensor:

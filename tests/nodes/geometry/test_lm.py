@@ -136,3 +136,32 @@ def test_lm_is_deterministic_across_threads(threads: int):
     finally:
         torch.set_num_threads(before)
     np.testing.assert_allclose(out.x.numpy(), 1.0, atol=1e-6)
+
+
+def test_residual_count_that_follows_x_and_residuals_returned_by_the_linearization():
+    """A residual vector whose length depends on x (as a coverage does: `temporal.flowfit`), two
+    elements of different lengths in one batch, and `normal` returning the residuals at x (the
+    3-value form): r(x) = (x - c) repeated 1 + floor(|x|) times, cost (1 + floor|x|)(x - c)^2,
+    minimum 0 at x = c. Gauss-Newton on (x - c) is exact in one step, so the answer is c to
+    float64 rounding of a scalar division (1e-15 relative)."""
+    c = torch.tensor([[0.25], [-0.6]], dtype=f64)
+
+    def res(x: torch.Tensor) -> torch.Tensor:
+        k = int(1 + torch.floor(x.abs()).max())  # the longest element's count; shorter ones padded by 0
+        reps = (1 + torch.floor(x.abs())).to(torch.long)  # (B, 1)
+        cols = torch.arange(k)[None]
+        return torch.where(cols < reps, x - c, torch.zeros((), dtype=f64))
+
+    seen = []
+
+    def normal(x: torch.Tensor, _r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        r = res(x)
+        seen.append(r.shape[1])
+        n = (r != 0).sum(1).clamp_min(1).to(f64)
+        return n[:, None, None], (r.sum(1))[:, None], r
+
+    out = levenberg_marquardt(res, normal, torch.tensor([[5.3], [-2.7]], dtype=f64), iterations=30,
+                              schedule=LMSchedule(rel_tol=0.0))
+    np.testing.assert_allclose(out.x.numpy(), c.numpy(), rtol=0, atol=1e-12)
+    assert seen[0] == 6 and seen[-1] == 1  # the count changed along the way (6 at x = 5.3, 1 at |x| < 1)
+    assert float(out.cost.max()) < 1e-24
