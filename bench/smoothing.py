@@ -11,7 +11,8 @@ Run: python bench/smoothing.py [--video] [--frames 24]
    graphs/fit_video_temporal.json (the same fit, infill, adaptive smoothing; one cache, so the fit
    runs once): jitter of the projected 68 points (mean squared second difference, px^2), their
    mean distance from the per-frame fit's (% of the eye distance), the weights' and the rotation's
-   roughness, and the seconds of each graph.
+   roughness, the frames failed, the seconds of each graph, and the task seconds per frame of the
+   fit and of each temporal stage (flow, infill, averaging, smoothing) with their ratio.
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ def video_rows(frames: int) -> list[str]:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         astronaut_video(tmp, frames)
-        results, seconds = {}, {}
+        results, seconds, task_seconds = {}, {}, {}
         for name in ("fit_video", "fit_video_temporal"):
             params = {"images": str(tmp / "plate.%04d.png"), "output": str(tmp / f"{name}.npz"),
                       "report": str(tmp / f"{name}_overlays")}
@@ -92,6 +93,9 @@ def video_rows(frames: int) -> list[str]:
             result = runner.run(Graph.load(root / f"{name}.json"), parameters=params, cache=tmp / "cache",
                                 scheduler="threads", workers=2)
             seconds[name] = time.perf_counter() - start
+            for task in result.tasks:
+                if task.get("status") == "executed":
+                    task_seconds[task["node"]] = task_seconds.get(task["node"], 0.0) + float(task["seconds"])
             if result.exit_code:
                 return [f"{name} failed: {result.summary()}"]
             with np.load(tmp / f"{name}.npz") as fit:
@@ -118,8 +122,18 @@ def video_rows(frames: int) -> list[str]:
                  f"{np.mean(np.diff(smooth['weights'][ok], 2, axis=0) ** 2):.5f} |",
                  f"| rotation roughness (deg^2) | {rough_rot(raw['rotation']):.4f} | {rough_rot(smooth['rotation']):.4f} |",
                  f"| points from the per-frame fit's (% eye distance) | 0 | {100 * gap.mean():.2f} |",
+                 f"| frames failed | {100 * raw['failed'].mean():.0f}% | {100 * smooth['failed'].mean():.0f}% |",
                  f"| graph seconds (one cache: the temporal graph reuses the fit) | {seconds['fit_video']:.1f} | "
                  f"+{seconds['fit_video_temporal']:.1f} |"]
+        fit_nodes = ("detect", "marks", "first_appearance", "appearance", "first_identity", "second_identity",
+                     "identity", "rigid", "expression")
+        fit_s = sum(task_seconds.get(n, 0.0) for n in fit_nodes)
+        stages = {n: task_seconds.get(n, 0.0) for n in ("flow", "infill", "average", "smooth")}
+        rows += ["", "task seconds per frame (summed over chunks), per stage:",
+                 "| fit (detection to expression) | " + " | ".join(stages) + " | temporal / fit |",
+                 "|---|" + "---|" * (len(stages) + 1),
+                 f"| {fit_s / frames:.3f} | " + " | ".join(f"{v / frames:.3f}" for v in stages.values())
+                 + f" | {sum(stages.values()) / max(fit_s, 1e-9):.3f} |"]
     return rows
 
 

@@ -15,6 +15,7 @@ Run: nice python bench/temporal.py [--size 256] [--pairs 4] [--threads 2] [--fra
 3. Smoothing: the same shot with per-frame fitting noise (0.01 rad, 0.15 cm); jitter (mean
    squared second difference of the 6 rigid parameters) and mean absolute error to the truth,
    for the raw values, averaging, self flow, plate flow and hybrid (optical plate flow).
+4. `--video FRAMES`: the real-video case (`bench/smoothing.py --video`, run from here too).
 """
 
 from __future__ import annotations
@@ -191,6 +192,10 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=4)
     parser.add_argument("--frames", type=int, default=9)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--video", type=int, default=0, metavar="FRAMES",
+                        help="also the real-video case: bench/smoothing.py's astronaut video of FRAMES frames "
+                        "through fit_video.json and fit_video_temporal.json (roughness of pose, weights and "
+                        "landmarks, failed frames, seconds per frame of each temporal stage beside the fit's)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     import numba
@@ -208,6 +213,11 @@ def main() -> None:
     print(f"\n{'smoothing (optical plate flow)':34s} {'jitter':>9s} {'error':>8s} {'s':>6s}")
     for name, jit, e, s in smooth:
         print(f"{name:34s} {jit:9.5f} {e:8.4f} {s:6.1f}")
+    if args.video:
+        from smoothing import video_rows
+
+        print()
+        print("\n".join(video_rows(args.video)))
 
 
 if __name__ == "__main__":
