@@ -7,9 +7,10 @@ the frames' several poses a multi-view constraint on the shape), + `lambda_id |a
 components are N(0, 1) a priori) + the expression prior. Alternates with re-anchoring on
 renders like `fit_stages`.
 
-Solver: Levenberg-Marquardt on all the unknowns together (bundle adjustment): the normal
-equations couple each frame's block (pose and shapes) to the shared identity, and the
-(B P + I)-square system is solved dense (B P + I is a few hundred). L-BFGS on the same
+Solver: Levenberg-Marquardt (`nodes.geometry.lm`, the stages' schedule `STAGE_SCHEDULE`) in
+float64 on all the unknowns together (bundle adjustment): the normal equations couple each
+frame's block (pose and shapes) to the shared identity, and the (B P + I)-square system is
+solved dense (B P + I is a few hundred). L-BFGS on the same
 energy stalled with the identity near the mean: its unknowns mix radians, centimetres and
 unit weights, and the energy's valley along pitch against face proportions is long.
 
@@ -24,11 +25,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry.lm import levenberg_marquardt
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import axis_angle_to_rotmat, landmark_weights
 from .photometric import PhotoSamples, PhotoTerm
-from .solve import (PoseState, _anchored, _render_anchors, _stage_jacobian, _stage_residuals, jaw_shapes,
-                    mouth_shapes)
+from .solve import (SOLVE_DTYPE, STAGE_SCHEDULE, PoseState, _anchored, _render_anchors, _stage_jacobian,
+                    _stage_residuals, in_dtype, jaw_shapes, mouth_shapes)
 from .views import Anchors, FitModel, FitViews, at_anchors, landmark_anchors
 
 __all__ = ["solve_identity"]
@@ -43,8 +45,11 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
     Returns:
         the frames' states and the identity (I,).
     """
-    neutral, deltas = _anchored(model, anchors)
-    id_d = at_anchors(identity_deltas, anchors.vertices, anchors.bary)  # (B, C, L, I, 3)
+    out_dt = state.rot.dtype
+    neutral, deltas = in_dtype(_anchored(model, anchors), SOLVE_DTYPE)
+    id_d = at_anchors(identity_deltas, anchors.vertices, anchors.bary).to(SOLVE_DTYPE)  # (B, C, L, I, 3)
+    views, anchors, state, identity, w_lm, photo = in_dtype((views, anchors, state, identity, w_lm, photo),
+                                                            SOLVE_DTYPE)
     dev, dt = neutral.device, neutral.dtype
     b = state.rot.shape[0]
     shapes = torch.as_tensor(sorted(set(jaw_shapes(model.names)) | set(mouth_shapes(model.names))), device=dev)
@@ -52,7 +57,8 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
     use_photo = photo is not None and photo_weight > 0
     if use_photo:  # the photometric unknowns per frame: the active weights, then the identity
         p_basis = torch.cat([photo.deltas[:, :, :, shapes].transpose(-1, -2),
-                             at_anchors(identity_deltas, photo.vertices, photo.bary).transpose(-1, -2)], -1)
+                             at_anchors(identity_deltas, photo.vertices, photo.bary).to(SOLVE_DTYPE)
+                             .transpose(-1, -2)], -1)
 
     def photo_term(weights0: Tensor) -> PhotoTerm:
         return PhotoTerm.about(photo, views, photo_weight, weights0, shapes, p_basis)
@@ -82,52 +88,48 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
         _, jp = photo_term(weights0).jacobian(rot0, x[:, 3:6], lin)
         return torch.cat([jx, jp[:, :, :n_p]], 1), torch.cat([ji, jp[:, :, n_p:]], 1)
 
-    def total(r: Tensor, ident: Tensor) -> Tensor:
-        return (r * r).sum() + identity_prior * (ident * ident).sum()
-
     rot, weights, ident = state.rot.detach(), state.weights.detach(), identity.detach().to(dt)
     x = torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), state.trans.detach(), weights[:, shapes]], 1)
+    now = {"rot": rot, "weights": weights}
+    root_prior = float(identity_prior) ** 0.5
+
+    def split(z: Tensor) -> tuple[Tensor, Tensor]:
+        """(1, B P + I) -> the frames' unknowns (B, P) and the identity (I,)."""
+        return z[0, :b * n_p].reshape(b, n_p), z[0, b * n_p:]
+
+    def all_residuals(z: Tensor) -> Tensor:
+        """(1, B P + I) -> (1, B M + I): the frames' residuals, then the identity prior's."""
+        xf, i = split(z)
+        return torch.cat([residuals(now["rot"], now["weights"], xf, i).reshape(-1), root_prior * i])[None]
+
+    def normal(z: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+        xf, i = split(z)
+        rf = r[0, :-n_i].reshape(b, -1)
+        jx, ji = jacobians(now["rot"], now["weights"], xf, i)  # (B, M, P), (B, M, I)
+        h = torch.zeros(n, n, dtype=dt, device=dev)
+        h[:b * n_p, :b * n_p] = torch.block_diag(*(jx.transpose(1, 2) @ jx))  # the frames' blocks
+        coupling = (jx.transpose(1, 2) @ ji).reshape(b * n_p, n_i)  # each frame's coupling to the identity
+        h[:b * n_p, b * n_p:] = coupling
+        h[b * n_p:, :b * n_p] = coupling.T
+        h[b * n_p:, b * n_p:] = torch.einsum("bmi,bmj->ij", ji, ji) + identity_prior * torch.eye(n_i, dtype=dt,
+                                                                                                 device=dev)
+        g = torch.cat([torch.einsum("bmp,bm->bp", jx, rf).reshape(-1),
+                       torch.einsum("bmi,bm->i", ji, rf) + identity_prior * i])
+        return h[None], g[None]
+
+    def relinearize(z: Tensor, accepted: Tensor) -> Tensor:  # the rotation about the new pose
+        xf, i = split(z)
+        now["rot"] = axis_angle_to_rotmat(xf[:, :3]) @ now["rot"]
+        now["weights"] = now["weights"].index_copy(1, shapes, xf[:, 6:])
+        xf = torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), xf[:, 3:]], 1)
+        return torch.cat([xf.reshape(-1), i])[None]
+
     n = b * n_p + n_i
-    eye = torch.eye(n, dtype=dt, device=dev)
     with torch.no_grad():
-        r = residuals(rot, weights, x, ident)
-        cost = total(r, ident)
-        lam = 1e-3
-        for _ in range(iterations):
-            jx, ji = jacobians(rot, weights, x, ident)  # (B, M, P), (B, M, I)
-            h = torch.zeros(n, n, dtype=dt, device=dev)
-            for f in range(b):  # the frames' blocks and their coupling to the identity
-                s = slice(f * n_p, (f + 1) * n_p)
-                h[s, s] = jx[f].T @ jx[f]
-                h[s, b * n_p:] = jx[f].T @ ji[f]
-                h[b * n_p:, s] = h[s, b * n_p:].T
-            h[b * n_p:, b * n_p:] = torch.einsum("bmi,bmj->ij", ji, ji) + identity_prior * torch.eye(n_i, dtype=dt,
-                                                                                                     device=dev)
-            g = torch.cat([torch.einsum("bmp,bm->bp", jx, r).reshape(-1),
-                           torch.einsum("bmi,bm->i", ji, r) + identity_prior * ident])
-            diag = torch.diagonal(h).clamp_min(1e-9)
-            improved = False
-            for _try in range(6):
-                step = -torch.linalg.solve(h + lam * torch.diag(diag) + 1e-9 * eye, g)
-                x_new = x + step[:b * n_p].reshape(b, n_p)
-                i_new = ident + step[b * n_p:]
-                r_new = residuals(rot, weights, x_new, i_new)
-                cost_new = total(r_new, i_new)
-                if cost_new < cost:
-                    improved = True
-                    break
-                lam = min(lam * 10.0, 1e8)
-            if not improved:
-                break
-            gain = float((cost - cost_new) / cost.clamp_min(1e-12))
-            lam = max(lam * 0.3, 1e-7)
-            rot = axis_angle_to_rotmat(x_new[:, :3]) @ rot  # re-linearize the rotation about the new pose
-            weights = weights.index_copy(1, shapes, x_new[:, 6:])
-            x = torch.cat([torch.zeros(b, 3, dtype=dt, device=dev), x_new[:, 3:]], 1)
-            ident, r, cost = i_new, r_new, cost_new
-            if gain < 1e-4:
-                break
-    return PoseState(rot, x[:, 3:6], weights.clamp(0, 1)), ident
+        out = levenberg_marquardt(all_residuals, normal, torch.cat([x.reshape(-1), ident])[None],
+                                  iterations=iterations, schedule=STAGE_SCHEDULE, relinearize=relinearize)
+    x, ident = split(out.x)
+    return in_dtype((PoseState(now["rot"], x[:, 3:6], now["weights"].clamp(0, 1)), ident), out_dt)
 
 
 def solve_identity(model: FitModel, identity_deltas: np.ndarray, views: FitViews, state: PoseState,

@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry.lm import LMSchedule, levenberg_marquardt
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, _skew, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
                      project_views, project_views_jacobian)
@@ -48,6 +49,32 @@ __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shape
 
 BOUND_PENALTY = 1e4
 """Weight of the quadratic penalty that keeps expression weights in [0, 1]."""
+
+SOLVE_DTYPE = torch.float64
+"""Precision of the Levenberg-Marquardt solves (residuals, Jacobians, normal equations). In float32
+the sums over the landmarks' and photometric samples' residuals round differently with the number
+of threads (torch splits a reduction across them), and a solve in a flat valley turns that
+rounding into a different answer (issue 30); in float64 the rounding is 1e-9 times smaller.
+Renders and the network's readings stay float32."""
+
+STAGE_SCHEDULE = LMSchedule(lam0=1e-3, down=0.3, up=10.0, lam_min=1e-7, lam_max=1e8, tries=6, rel_tol=1e-4,
+                            diag_floor=1e-9, floor=1e-9)
+"""`nodes.geometry.lm`'s schedule for the stage and identity solves: lambda x 0.3 after a step that
+lowers a frame's energy, x 10 and retry (6 tries) otherwise; a frame stops when a step gains less
+than 1e-4 of its energy."""
+
+
+def in_dtype(value: Any, dtype: torch.dtype) -> Any:
+    """`value` with its floating tensors (also inside a NamedTuple or a dataclass) cast to `dtype`."""
+    if isinstance(value, Tensor):
+        return value.to(dtype) if value.is_floating_point() else value
+    if isinstance(value, tuple):
+        items = [in_dtype(v, dtype) for v in value]
+        return value._make(items) if hasattr(value, "_make") else tuple(items)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.replace(value, **{f.name: in_dtype(getattr(value, f.name), dtype)
+                                             for f in dataclasses.fields(value) if f.init})
+    return value
 
 
 @dataclass(frozen=True)
@@ -262,10 +289,10 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     """Minimize one stage's energy over its unknowns (all frames at once; frames are independent).
 
     The energy is a sum of squares (`_stage_residuals`), minimized per frame by
-    Levenberg-Marquardt: Jacobian chained by hand (`_stage_jacobian`, the photometric
-    term's `PhotoTerm.jacobian`; tested against forward-mode autodiff), damping `lambda diag(J^T J)`
-    (lambda x 0.3 after a step that lowers the frame's energy, x 10 and retry otherwise), the
-    rotation re-linearized after every accepted step (`R <- exp([omega]) R`). Much cheaper than
+    Levenberg-Marquardt (`nodes.geometry.lm`, `STAGE_SCHEDULE`) in float64 (`SOLVE_DTYPE`):
+    Jacobian chained by hand (`_stage_jacobian`, the photometric term's `PhotoTerm.jacobian`;
+    tested against forward-mode autodiff), the rotation re-linearized after every accepted step
+    (`R <- exp([omega]) R`). Much cheaper than
     L-BFGS here: the unknowns are few (6 + the active shapes) and each iteration costs one
     Jacobian and one or two evaluations.
 
@@ -285,7 +312,9 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     Returns:
         the new state and (B,) the energy at it (data + edges + photometric + prior).
     """
-    neutral, deltas = _anchored(model, anchors)
+    out_dt = state.rot.dtype
+    neutral, deltas = in_dtype(_anchored(model, anchors), SOLVE_DTYPE)
+    views, anchors, state, photo, rigid_prior = in_dtype((views, anchors, state, photo, rigid_prior), SOLVE_DTYPE)
     b = state.rot.shape[0]
     use_photo = photo is not None and photo_weight > 0
     if use_photo:
@@ -299,7 +328,6 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     free_idx = torch.nonzero(free)[:, 0]
     n_p = len(free_idx)
     rot, trans, weights = state.rot.detach(), state.trans.detach(), state.weights.detach()
-    eye = torch.eye(n_p, dtype=dt, device=dev)
 
     def full(x_free: Tensor, x_fixed: Tensor) -> Tensor:
         return x_fixed.index_copy(1, free_idx, x_free) if n_p else x_fixed
@@ -339,43 +367,34 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         return PoseState(r, x[:, 3:6], w)
 
     with torch.no_grad():
-        fn, jac_fn, x = linearize(rot, trans, weights)
-        r = fn(x)
+        now = dict(zip(("residuals", "jacobian", "x"), linearize(rot, trans, weights)), rot=rot, trans=trans,
+                   weights=weights)
+
+        def relinearize(x: Tensor, accepted: Tensor) -> Tensor:
+            new = state_at(now["rot"], full(x, unknowns(now["trans"], now["weights"])))
+            now["rot"] = torch.where(accepted[:, None, None], new.rot, now["rot"])
+            now["trans"] = torch.where(accepted[:, None], new.trans, now["trans"])
+            now["weights"] = torch.where(accepted[:, None], new.weights, now["weights"])
+            now["residuals"], now["jacobian"], x0 = linearize(now["rot"], now["trans"], now["weights"])
+            return x0
+
+        def normal(x: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+            jac = now["jacobian"](x)  # (B, M, P)
+            return jac.transpose(1, 2) @ jac, (jac.transpose(1, 2) @ r[..., None])[..., 0]
+
+        x = now["x"]
+        if n_p:
+            out = levenberg_marquardt(lambda xf: now["residuals"](xf), normal, x, iterations=iterations,
+                                      schedule=STAGE_SCHEDULE, relinearize=relinearize)
+            r = out.residuals
+        else:
+            r = now["residuals"](x)
+        rot, trans, weights = now["rot"], now["trans"], now["weights"]
         m_lm = r.shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
-        cost = (r * r).sum(1)
-        lam = torch.full((b,), 1e-3, dtype=dt, device=dev)
-        running = torch.ones(b, dtype=torch.bool, device=dev)
-        for _ in range(iterations if n_p else 0):
-            jac = jac_fn(x)  # (B, M, P)
-            jtj = jac.transpose(1, 2) @ jac
-            jtr = (jac.transpose(1, 2) @ r[..., None])[..., 0]
-            diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
-            for _try in range(6):
-                step = -torch.linalg.solve(jtj + (lam[:, None] * diag)[:, :, None] * eye + 1e-9 * eye,
-                                           jtr[..., None])[..., 0]
-                r_new = fn(x + step)
-                cost_new = (r_new * r_new).sum(1)
-                better = (cost_new < cost) & running
-                lam = torch.where(better, lam * 0.3, torch.where(running, lam * 10.0, lam)).clamp(1e-7, 1e8)
-                if better.any():
-                    break
-            if not better.any():
-                break
-            gain = (cost - cost_new) / cost.clamp_min(1e-12)
-            running = running & ~(better & (gain < 1e-4))
-            new = state_at(rot, full(x + step, unknowns(trans, weights)))
-            rot = torch.where(better[:, None, None], new.rot, rot)
-            trans = torch.where(better[:, None], new.trans, trans)
-            weights = torch.where(better[:, None], new.weights, weights)
-            r = torch.where(better[:, None], r_new, r)
-            cost = torch.where(better, cost_new, cost)
-            if not running.any():
-                break
-            fn, jac_fn, x = linearize(rot, trans, weights)
         drop = len(stage.shapes) + (12 if rigid_prior is not None and rigid_prior_weight > 0 else 0)
         kept = torch.cat([r[:, :m_lm - drop], r[:, m_lm:]], 1)  # data + edges + prior + photometric
         e = (kept * kept).sum(1)
-    return PoseState(rot, trans, weights.clamp(0.0, 1.0)), e
+    return in_dtype(PoseState(rot, trans, weights.clamp(0.0, 1.0)), out_dt), e.to(out_dt)
 
 
 def _render_anchors(model: FitModel, views: FitViews, state: PoseState, network: torch.nn.Module,
