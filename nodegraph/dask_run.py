@@ -172,3 +172,8 @@ def _connect(address: str) -> Any:
     except OSError as err:  # distributed raises OSError for timeouts, refusals and unknown hosts
         raise SchedulerError(address, f"expected a dask.distributed scheduler answering at {address}, "
                                       f"found none within {CONNECT_TIMEOUT_S:g} s") from err
+    except Exception as err:  # something answers that does not speak dask's protocol (a proxy, a web
+        # server): its bytes read as a frame length give MemoryError, ValueError, msgpack errors...
+        raise SchedulerError(address, f"expected a dask.distributed scheduler answering at {address}, "
+                                      f"found something else answering there ({type(err).__name__}: "
+                                      f"{str(err)[:120]})") from err

@@ -69,6 +69,41 @@ def test_unreachable_scheduler_fails_fast_with_exit_2(graph_file, cache_dir, cap
     assert "Traceback" not in err
 
 
+def test_an_address_answered_by_something_else_than_dask_is_exit_2(graph_file, cache_dir, capsys, monkeypatch):
+    """A port where a proxy or web server answers (its bytes read as a huge frame length gave
+    numpy's ArrayMemoryError and exit 1 through a traceback) is exit 2 naming the address."""
+    pytest.importorskip("distributed")
+    import threading
+
+    monkeypatch.setattr(dask_run, "CONNECT_TIMEOUT_S", 2.0)
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+    address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+
+    def answer() -> None:
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            with conn:
+                conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: 0\r\n\r\n" * 4)
+
+    threading.Thread(target=answer, daemon=True).start()
+    try:
+        start = time.monotonic()
+        code = main(["run", str(graph_file), "--scheduler", address, "--cache", str(cache_dir),
+                     "--progress", "none"])
+    finally:
+        server.close()
+    assert code == 2
+    assert time.monotonic() - start < 15
+    err = capsys.readouterr().err
+    assert f"--scheduler: expected a dask.distributed scheduler answering at {address}" in err
+    assert "Traceback" not in err
+
+
 # -- 2. booleans -----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("value", ["yes", "true", 1, 0])
