@@ -16,7 +16,9 @@ could produce an input file, or that shares an input pattern's folder, prefix an
 an output folder that is, or contains, an input file, folder or an input pattern's folder;
 an output inside an input folder. Also refused: an output whose nearest existing parent is a
 regular file, or whose folder cannot be created or written (`os.access` on the nearest
-existing ancestor), a file output that is a folder and a folder output that is a file. An
+existing ancestor, then a hidden folder made and removed there, as the run's staging will:
+root passes `os.access` everywhere, yet cannot write in /proc, /sys or a read-only mount),
+a file output that is a folder and a folder output that is a file. An
 empty output path ('' = write nothing) is skipped.
 """
 
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import os
 import re
+import tempfile
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -188,6 +191,14 @@ def _writable(out: PathParam) -> str:
         if str(here) == folder:
             return f"cannot write in the folder '{folder}' (permission denied)"
         return f"cannot create the folder '{folder}': '{here}' is not writable"
+    try:  # what the staging does first (staging.STAGE_PREFIX folder beside the destination)
+        probe = Path(tempfile.mkdtemp(prefix=".nodegraph-staging.probe.", dir=here))
+    except OSError as err:
+        reason = err.strerror or type(err).__name__
+        if str(here) == folder:
+            return f"cannot write in the folder '{folder}' ({reason})"
+        return f"cannot create the folder '{folder}': '{here}' does not accept new folders ({reason})"
+    probe.rmdir()
     return ""
 
 

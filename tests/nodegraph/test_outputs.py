@@ -142,6 +142,45 @@ def test_output_in_an_unwritable_folder_is_refused_before_running(tmp_path, cach
         locked.chmod(0o700)
 
 
+def test_a_folder_that_refuses_new_files_is_found_even_when_os_access_says_yes(tmp_path, cache_dir, monkeypatch):
+    """Root passes os.access everywhere; a read-only mount or /proc still refuses. The check
+    makes (and removes) a hidden folder where the staging will, so such an output is exit 2
+    before anything runs, not a raw Errno from the writer after the work."""
+    import tempfile
+
+    source = _numbers(tmp_path / "shot.txt")
+    locked = tmp_path / "readonly"
+    locked.mkdir()
+
+    def refuse(*args: object, dir: str | os.PathLike | None = None, **kwargs: object) -> str:
+        if dir is not None and Path(dir) == locked:
+            raise PermissionError(30, "Read-only file system")
+        return real_mkdtemp(*args, dir=dir, **kwargs)
+
+    real_mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    g = _lines_to(tmp_path, source, str(locked / "out.txt"))
+    with pytest.raises(GraphError, match=r"cannot write in the folder '.*readonly' \(Read-only file system\)"):
+        run(g, cache=cache_dir, scheduler="sync")
+    g.set("save", path=str(locked / "new" / "out.txt"))
+    with pytest.raises(GraphError, match=r"'.*readonly' does not accept new folders \(Read-only file system\)"):
+        run(g, cache=cache_dir, scheduler="sync")
+    assert not (cache_dir / "objects").exists()
+    assert list(locked.iterdir()) == []
+    g.set("save", path=str(tmp_path / "fine" / "out.txt"))  # the probe leaves nothing where it succeeds
+    run(g, cache=cache_dir, scheduler="sync")
+    assert _staging_left(tmp_path) == []
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+def test_an_output_under_proc_is_refused_before_running_even_for_root(tmp_path, cache_dir, capsys):
+    source = _numbers(tmp_path / "shot.txt")
+    g = _lines_to(tmp_path, source, "/proc/nodegraph-test/out.txt")
+    with pytest.raises(GraphError, match=r"node 'save', 'path': output '/proc/nodegraph-test/out.txt': "
+                                         r"cannot create the folder"):
+        run(g, cache=cache_dir, scheduler="sync")
+
+
 def test_empty_output_path_is_not_checked(tmp_path, cache_dir):
     source = _numbers(tmp_path / "shot.txt")
     g = _lines_to(tmp_path, source, "", writer="test.WriteSummary", param="folder")
