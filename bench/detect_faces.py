@@ -1,7 +1,7 @@
 """Face detection cost per frame at 1080p (whole frame vs image pyramid) and the hard cases.
 
 Run: nice python bench/detect_faces.py [--repeat 3] [--threads 2] [--batch 1] [--no-cases] [--no-video]
-     [--no-spoiled]
+     [--no-spoiled] [--no-check] [--only-check]
 
 Timings (best of `--repeat` runs after one warm-up, ms per frame: the least disturbed by other
 work on a shared machine) on a 1920 x 1080 frame
@@ -35,6 +35,17 @@ Then, unless `--no-spoiled`, `landmarks.TrackFaces` on spoiled frames (`cases.de
 dark, blurred, JPEG quality 6, noisy, grey, 16-bit) of three cases at the 4 placements: per
 case the 68-point error in % of the eye distance, or F and the failure reason's code
 (`nodes.landmarks.tracking.FAILURE_REASONS`).
+
+Then, unless `--no-check` (`--only-check`: this table alone), the issue-26 acceptance check as one
+count: `landmarks.TrackFaces` (with its defaults, as `landmarks.json` runs it) on every case of
+`cases.CASES` (rolled, shrunk into 1080p / 4K / 817 x 1024 frames, dark, a second smaller copy,
+combined) crossed with every spoiling of `cases.degrade` and none, on both photos, one placement
+each (the placement and the noise seed cycle through `SHIFTS` by case). A frame counts as within
+10% when it is not failed and its 68-point error is under 10% of the eye distance; a failed frame
+counts against the rate; "confident wrong" is a frame not flagged failed whose error is over 50%
+of the eye distance (a wrong face or a scatter). Printed per case, per spoiling and in all: the
+frames within 10%, the median error (failed frames as infinite), failed frames and confident wrong
+ones. The target (issue 26): at least 90% within 10%, median under 6%, no confident wrong face.
 """
 
 from __future__ import annotations
@@ -62,8 +73,13 @@ def main() -> None:
     parser.add_argument("--no-cases", action="store_true", help="no hard cases")
     parser.add_argument("--no-video", action="store_true", help="no video tracking")
     parser.add_argument("--no-spoiled", action="store_true", help="no spoiled frames")
+    parser.add_argument("--no-check", action="store_true", help="no acceptance check (cases x spoilings)")
+    parser.add_argument("--only-check", action="store_true", help="only the acceptance check")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.only_check:
+        check_rows()
+        return
 
     from cases import CASES, error_percent, make_case
 
@@ -97,6 +113,8 @@ def main() -> None:
         video_rows(args.repeat)
     if not args.no_spoiled:
         spoiled_rows()
+    if not args.no_check:
+        check_rows()
     if args.no_cases:
         return
     mesh = load_face_mesh()
@@ -221,6 +239,55 @@ def spoiled_rows() -> None:
                     cells.append(f"F{out.reasons[0]}" if out.failed[0] else
                                  f"{error_percent(out.points[0][MEDIAPIPE_TO_68], c.points[MEDIAPIPE_TO_68], c.eye):.1f}")
                 print(f"| {photo} | {base} | {kind} | {' '.join(cells)} |", flush=True)
+
+
+SPOILINGS = ("none", "dark", "blur", "jpeg 6", "noise", "grey", "16-bit")
+"""The spoilings of the acceptance check: none and every kind of `cases.degrade`."""
+
+
+def check_rows() -> None:
+    """Print the issue-26 acceptance check (see the module docstring)."""
+    from cases import CASES, degrade, error_percent, make_case
+
+    from nodes.landmarks.correspondence import MEDIAPIPE_TO_68
+    from nodes.landmarks.face_tracker import track_faces
+
+    records = []  # (photo, case, spoiling, error % or inf where failed, failure reason or -1)
+    for photo in ("astronaut", "camera"):
+        for c_index, (base, params) in enumerate(CASES.items()):
+            kw = dict(params)
+            at = kw.pop("at", (0.5, 0.5))
+            dx, dy = SHIFTS[c_index % len(SHIFTS)]
+            c = make_case(photo, **kw, at=(at[0] + dx, at[1] + dy))
+            for s_index, kind in enumerate(SPOILINGS):
+                image = c.image if kind == "none" else degrade(c.image, kind, seed=c_index + s_index)
+                out = track_faces(image[None], with_iris=False)
+                error = (np.inf if out.failed[0] else
+                         error_percent(out.points[0][MEDIAPIPE_TO_68], c.points[MEDIAPIPE_TO_68], c.eye))
+                records.append((photo, base, kind, error, int(out.reasons[0]) if out.failed[0] else -1))
+            print(f"  {photo} / {base}: " + " ".join("F" if np.isinf(r[3]) else f"{r[3]:.1f}"
+                                                       for r in records[-len(SPOILINGS):]), flush=True)
+
+    def row(label: str, chosen: list) -> str:
+        errors = np.array([r[3] for r in chosen])
+        within = int((errors < 10).sum())
+        failed = int(np.isinf(errors).sum())
+        wrong = int(((errors > 50) & np.isfinite(errors)).sum())
+        median = np.median(errors)
+        return (f"| {label} | {len(errors)} | {within} ({100 * within / len(errors):.0f}%) | "
+                f"{'F' if np.isinf(median) else f'{median:.1f}'} | {failed} | {wrong} |")
+
+    header = "| {} | frames | within 10% | median % | failed | confident wrong (> 50%) |\n|---|---|---|---|---|---|"
+    print("\n" + header.format("case (both photos, every spoiling)"))
+    for base in CASES:
+        print(row(base, [r for r in records if r[1] == base]))
+    print("\n" + header.format("spoiling (both photos, every case)"))
+    for kind in SPOILINGS:
+        print(row(kind, [r for r in records if r[2] == kind]))
+    print("\n" + header.format("photo"))
+    for photo in ("astronaut", "camera"):
+        print(row(photo, [r for r in records if r[0] == photo]))
+    print(row("all", records))
 
 
 if __name__ == "__main__":
