@@ -45,7 +45,8 @@ each (the placement and the noise seed cycle through `SHIFTS` by case). A frame 
 counts against the rate; "confident wrong" is a frame not flagged failed whose error is over 50%
 of the eye distance (a wrong face or a scatter). Printed per case, per spoiling and in all: the
 frames within 10%, the median error (failed frames as infinite), failed frames and confident wrong
-ones. The target (issue 26): at least 90% within 10%, median under 6%, no confident wrong face.
+ones (first, per case, each spoiling's error or F and the failure reason's code,
+`nodes.landmarks.tracking.FAILURE_REASONS`). The target (issue 26): at least 90% within 10%, median under 6%, no confident wrong face.
 """
 
 from __future__ import annotations
@@ -265,8 +266,8 @@ def check_rows() -> None:
                 error = (np.inf if out.failed[0] else
                          error_percent(out.points[0][MEDIAPIPE_TO_68], c.points[MEDIAPIPE_TO_68], c.eye))
                 records.append((photo, base, kind, error, int(out.reasons[0]) if out.failed[0] else -1))
-            print(f"  {photo} / {base}: " + " ".join("F" if np.isinf(r[3]) else f"{r[3]:.1f}"
-                                                       for r in records[-len(SPOILINGS):]), flush=True)
+            print(f"  {photo} / {base} ({', '.join(SPOILINGS)}): " + " ".join(
+                f"F{r[4]}" if np.isinf(r[3]) else f"{r[3]:.1f}" for r in records[-len(SPOILINGS):]), flush=True)
 
     def row(label: str, chosen: list) -> str:
         errors = np.array([r[3] for r in chosen])
