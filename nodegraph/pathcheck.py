@@ -14,7 +14,8 @@ Refused (exit 2, one message naming both nodes, both parameters and the path): a
 that is an input file; an output file an input pattern would read; an output pattern that
 could produce an input file, or that shares an input pattern's folder, prefix and extension;
 an output folder that is, or contains, an input file, folder or an input pattern's folder;
-an output inside an input folder. Also refused: an output whose nearest existing parent is a
+an output inside an input folder; two outputs of the run at one path (or patterns that can name
+the same files, or one output's file path another's folder). Also refused: an output whose nearest existing parent is a
 regular file, or whose folder cannot be created or written (`os.access` on the nearest
 existing ancestor, then a hidden folder made and removed there, as the run's staging will:
 root passes `os.access` everywhere, yet cannot write in /proc, /sys or a read-only mount),
@@ -221,7 +222,30 @@ def output_path_issues(nodes: dict[str, Node]) -> list[GraphIssue]:
                 issues.append(GraphIssue(out.node, out.param, f"output '{out.value}' {clash}; choose another "
                                                               "output path"))
                 break
+    for later, out in enumerate(outputs):
+        for other in outputs[:later]:
+            clash = _output_clash(out, other)
+            if clash:
+                issues.append(GraphIssue(out.node, out.param, f"output '{out.value}' {clash}; choose another "
+                                                              "output path"))
+                break
     return issues
+
+
+def _output_clash(out: PathParam, other: PathParam) -> str:
+    """How two outputs of one run would write over each other ("" when they would not): the
+    same path, patterns that can name the same files, or one's file path the other's folder.
+    (A file written into another output's folder is fine: writers write their own files.)"""
+    who = f"of node '{other.node}' parameter '{other.param}'"
+    if out.real == other.real:
+        return f"is also the output '{other.value}' {who}"
+    if out.kind == "pattern" and other.kind == "pattern" and _patterns_overlap(out, other):
+        return f"could write the same files as the output pattern '{other.value}' {who}"
+    if other.kind == "file" and _inside(out.real, other.real):
+        return f"would be inside the output file '{other.value}' {who}"
+    if out.kind == "file" and _inside(other.real, out.real):
+        return f"would be the file the output '{other.value}' {who} needs as a folder"
+    return ""
 
 
 def _needed_nodes(plan: Plan) -> list[str]:

@@ -181,6 +181,27 @@ def test_an_output_under_proc_is_refused_before_running_even_for_root(tmp_path, 
         run(g, cache=cache_dir, scheduler="sync")
 
 
+@pytest.mark.parametrize("first, second, shown", [
+    ("out.txt", "out.txt", "is also the output"),
+    ("out.txt", "out.txt/inner.txt", "would be inside the output file"),
+    ("lines.%04d.txt", "lines.{frame:04d}.txt", "could write the same files as the output pattern"),
+])
+def test_two_outputs_at_one_path_are_refused_before_running(tmp_path, cache_dir, first, second, shown):
+    """stabilize.json output=r.npz report=r.npz ran the whole graph, then failed in the report's
+    writer with a raw FileExistsError; now exit 2 before anything runs, naming both writers."""
+    source = _numbers(tmp_path / "shot.txt")
+    g = _lines_to(tmp_path, source, str(tmp_path / first))
+    g.add("test.WriteText", id="save_again", path=str(tmp_path / second))
+    g.connect("load.values", "save_again.values")
+    with pytest.raises(GraphError, match=rf"node 'save_again', 'path': output '.*' {shown} '.*' of node 'save' "
+                                         r"parameter 'path'; choose another output path"):
+        run(g, cache=cache_dir, scheduler="sync")
+    assert not (cache_dir / "objects").exists()
+    g.set("save_again", path=str(tmp_path / "elsewhere.txt"))  # distinct paths are fine
+    run(g, cache=cache_dir, scheduler="sync")
+    assert (tmp_path / "elsewhere.txt").read_text() == "".join(_line(i) for i in range(6))
+
+
 def test_empty_output_path_is_not_checked(tmp_path, cache_dir):
     source = _numbers(tmp_path / "shot.txt")
     g = _lines_to(tmp_path, source, "", writer="test.WriteSummary", param="folder")
