@@ -25,6 +25,7 @@ Run: python bench/smoothing.py [--video] [--frames 24]
 from __future__ import annotations
 
 import argparse
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -158,7 +159,8 @@ def astronaut_video(folder: Path, frames: int, *, jaw_px: float = 7.0, noise: fl
         write_image(folder / f"plate.{i:04d}.png", frame, ["R", "G", "B"], "uint8")
 
 
-def video_rows(frames: int) -> list[str]:
+def video_rows(frames: int, keep: Path | None = None) -> list[str]:
+    """The real-video rows; `keep`: a folder the two graphs' NPZ outputs are copied to."""
     from nodegraph import Graph, runner
 
     root = Path(__file__).resolve().parents[1] / "graphs"
@@ -181,6 +183,9 @@ def video_rows(frames: int) -> list[str]:
                     task_seconds[task["node"]] = task_seconds.get(task["node"], 0.0) + float(task["seconds"])
             if result.exit_code:
                 return [f"{name} failed: {result.summary()}"]
+            if keep is not None:
+                keep.mkdir(parents=True, exist_ok=True)
+                shutil.copy(tmp / f"{name}.npz", keep / f"{name}.npz")
             with np.load(tmp / f"{name}.npz") as fit:
                 results[name] = {k: fit[k] for k in fit.files}
         raw, smooth = results["fit_video"], results["fit_video_temporal"]
@@ -246,13 +251,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--video", action="store_true", help="also the astronaut video through the graphs")
     parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--keep", type=Path, default=None, help="folder to copy the two graphs' NPZ outputs to")
     args = parser.parse_args()
     print("\n".join(curve_rows()))
     print()
     print("\n".join(known_shot_rows()))
     if args.video:
         print()
-        print("\n".join(video_rows(args.frames)))
+        print("\n".join(video_rows(args.frames, args.keep)))
 
 
 if __name__ == "__main__":
