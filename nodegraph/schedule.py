@@ -193,17 +193,23 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
     if issues:
         raise GraphError(issues)
 
+    counts = {}
+    for nid in order:
+        node = nodes[nid]
+        if modes[nid] != "static" and not any(node.inputs[p].per_frame for p in ups[nid]):
+            try:
+                count = node.frame_count()
+            except Exception as err:  # a source that cannot read its files
+                raise wrap_error(node, err, bad_input=True) from err
+            if count is not None:
+                counts[nid] = int(count)
+    if frames is not None:  # a range past a source's end fails in every chunk there: refuse it now
+        short = [GraphIssue(nid, "", f"--frames {frames.start}:{frames.stop}: expected frames within the "
+                                     f"{count} frame(s) this source has (0:{count}), found stop {frames.stop}")
+                 for nid, count in counts.items() if frames.stop > count]
+        if short:
+            raise GraphError(short)
     if frames is None:
-        counts = {}
-        for nid in order:
-            node = nodes[nid]
-            if modes[nid] != "static" and not any(node.inputs[p].per_frame for p in ups[nid]):
-                try:
-                    count = node.frame_count()
-                except Exception as err:  # a source that cannot read its files
-                    raise wrap_error(node, err, bad_input=True) from err
-                if count is not None:
-                    counts[nid] = int(count)
         if not counts:
             raise GraphError([GraphIssue("", "", "no source node knows how many frames to produce; "
                                          "pass frames (--frames a:b)")])

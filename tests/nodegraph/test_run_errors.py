@@ -212,3 +212,18 @@ def test_missing_input_file_is_exit_2_naming_node_parameter_and_path(tmp_path, c
     with pytest.raises(NodeError) as info:
         run(g, cache=False)
     assert info.value.port == "path" and info.value.bad_input
+
+
+def test_frames_past_a_sources_end_are_refused_before_running(tmp_path, cache_dir, capsys):
+    """--frames 0:999 on a 20-frame capture failed in every chunk past frame 20, one different
+    line per chunk; now one exit-2 line naming the source and its frame count, before running."""
+    with pytest.raises(GraphError, match=r"node 'ramp': --frames 0:41: expected frames within the 40 frame\(s\) "
+                                         r"this source has \(0:40\), found stop 41"):
+        run(chain(40), frames=range(0, 41), cache=cache_dir, scheduler="sync")
+    assert not (cache_dir / "objects").exists()
+    assert run(chain(40), frames=range(10, 40), cache=cache_dir, scheduler="sync").ok  # up to the end is fine
+    graph_file = tmp_path / "chain.json"
+    chain(40).save(graph_file)
+    assert main(["run", str(graph_file), "--frames", "0:999", "--cache", str(cache_dir), "--progress", "none"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("expected frames within the 40 frame(s)") == 1 and "Traceback" not in err
