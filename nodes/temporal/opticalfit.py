@@ -10,8 +10,9 @@ Energy of frame i (neighbours' parameters held; m as in `nodes.temporal.flowfit`
 settings. The paper's argument for it: the flow method's own errors on the plates are partly
 repeated on the renders and cancel. Its costs: the render must look like the plate (a
 textured albedo, e.g. `fit.EstimateAppearance`'s; the default albedo has no texture to flow
-on) and each residual evaluation is a render and two flows. Solved by Levenberg-Marquardt with
-a finite-difference Jacobian (`solve_frame_optical`), one frame per call (chunk-invariant like
+on) and each residual evaluation is a render and two flows. Solved by Levenberg-Marquardt
+(`nodes.geometry.lm`, one try per iteration, as `nodes.temporal.flowfit`) with a
+finite-difference Jacobian (`solve_frame_optical`), one frame per call (chunk-invariant like
 the geometric solve).
 
 Torch at module level: import from node `run()` methods only.
@@ -26,6 +27,7 @@ import torch
 from torch import Tensor
 
 from ..flow.dense import FlowSettings, dense_flow
+from ..geometry.lm import LMSchedule, levenberg_marquardt
 from .flowfit import PRIOR_SCALES, FlowModel, Terms
 
 __all__ = ["RenderScene", "optical_energies", "solve_frame_optical"]
@@ -137,24 +139,30 @@ def solve_frame_optical(scene: RenderScene, model: FlowModel, x0: Tensor, terms:
     is_weight = free >= 6
     rendered = neighbour_renders(scene, model, terms)
     eye = torch.eye(p, dtype=torch.float64, device=x0.device)
-    x, lam, cost = x0.clone(), damping, None
+    schedule = LMSchedule(lam0=damping, lam_min=0.0, lam_max=float("inf"), tries=1, rel_tol=0.0, diag_floor=1e-12,
+                          floor=0.0, stop_when_stuck=False)
+    held: dict = {}
+
+    def full(z: Tensor) -> Tensor:
+        return x0.index_copy(1, free, z)
+
+    def residuals(z: Tensor) -> Tensor:  # the mask held from the iteration's start
+        if "mask" not in held:
+            held["mask"] = scene.render(model, full(z))[1][0] > 0.5
+        return _residuals(scene, model, full(z), terms, rendered, held["mask"])
+
+    def normal(z: Tensor, r: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """J by central differences, and the residuals at z under z's own mask (they replace r)."""
+        held["mask"] = scene.render(model, full(z))[1][0] > 0.5
+        zs = torch.cat([z, z[0] + step * scale * torch.cat([eye, -eye])])  # (2P + 1, P)
+        rr = _residuals(scene, model, x0.expand(len(zs), -1).index_copy(1, free, zs), terms, rendered, held["mask"])
+        jac = ((rr[1:p + 1] - rr[p + 1:]) / (2 * step * scale[:, None])).T  # (M, P)
+        return (jac.T @ jac)[None], (jac.T @ rr[0])[None], rr[:1]
+
+    def retract(z: Tensor, dz: Tensor) -> Tensor:
+        return torch.where(is_weight, (z + dz).clamp(0.0, 1.0), z + dz)
+
     with torch.no_grad():
-        for _ in range(iterations):
-            self_mask = scene.render(model, x)[1][0] > 0.5
-            z = x.index_select(1, free)[0]
-            zs = torch.cat([z[None], z + step * scale * torch.cat([eye, -eye])])  # (2P + 1, P)
-            r = _residuals(scene, model, x.expand(len(zs), -1).index_copy(1, free, zs), terms, rendered, self_mask)
-            r0 = r[0]
-            cost = float((r0 * r0).sum())
-            jac = ((r[1:p + 1] - r[p + 1:]) / (2 * step * scale[:, None])).T  # (M, P)
-            jtj, jtr = jac.T @ jac, jac.T @ r0
-            diag = torch.diagonal(jtj).clamp_min(1e-12)
-            new_z = z - torch.linalg.solve(jtj + lam * torch.diag(diag), jtr)
-            new_z = torch.where(is_weight, new_z.clamp(0.0, 1.0), new_z)
-            new_x = x.index_copy(1, free, new_z[None])
-            r_new = _residuals(scene, model, new_x, terms, rendered, self_mask)[0]
-            if float((r_new * r_new).sum()) < cost:
-                x, lam = new_x, lam * 0.3
-            else:
-                lam *= 10.0
-    return x
+        out = levenberg_marquardt(residuals, normal, x0.index_select(1, free), iterations=iterations,
+                                  schedule=schedule, retract=retract)
+    return full(out.x)
