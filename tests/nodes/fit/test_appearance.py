@@ -12,8 +12,8 @@ torch = pytest.importorskip("torch")
 
 from nodegraph import Camera, JsonValue  # noqa: E402
 from nodes.fit.appearance import albedo_smoothing_steps, estimate_appearance  # noqa: E402
-from nodes.fit.nodes import (PHOTOMETRIC_REFERENCE_NOISE, _render_noise, painting_frame_count,  # noqa: E402
-                             photometric_weight_for)
+from nodes.fit.frame_selection import _render_noise, painting_frame_count  # noqa: E402
+from nodes.fit.tuning import PHOTOMETRIC_REFERENCE_NOISE, photometric_weight_for  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
 from nodes.render.appearance import default_albedo, hidden_faces  # noqa: E402
 from nodes.render.renderer import render_mesh, sh_from_lights  # noqa: E402
@@ -149,7 +149,7 @@ def test_the_defaults_adapt_to_the_plates_noise():
 
 def test_linear_plates_of_some_frames_are_those_of_the_whole_shot():
     from nodegraph import ImageSequence
-    from nodes.fit.nodes import _linear_rgb
+    from nodes.fit.node_inputs import _linear_rgb
 
     rng = np.random.default_rng(0)
     seq = ImageSequence(rng.uniform(0, 1, (5, 8, 9, 3)).astype(np.float32), colour_space="srgb")

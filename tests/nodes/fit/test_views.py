@@ -156,7 +156,7 @@ def test_default_appearance_carries_the_plates_noise_when_asked():
 def test_view_spread_counts_the_frames_turns_and_the_cameras():
     from scipy.spatial.transform import Rotation
 
-    from nodes.fit.nodes import view_spread_deg
+    from nodes.fit.frame_selection import view_spread_deg
     from nodes.fit.synthetic import orbit_camera
 
     cam0 = Camera.from_fov(256, 256, 30.0)

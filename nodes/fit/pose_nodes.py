@@ -1,0 +1,196 @@
+"""The fit's per-frame stages (paper 2, PAPERS.md §2, `nodes.fit.solve`) and their batch driver.
+
+- `fit.RigidPose`: rigid head pose per frame (translation, then rotation + translation on the
+  non-jaw, jaw and all landmarks);
+- `fit.Expression`: jaw and mouth weights per frame from the rigid pose (or with it held).
+
+Both are framewise (chunks run in parallel); `_run_fit` solves `batch` frames together.
+Multi-camera: the list ports `landmarks`, `boxes` and `cameras` take one connection per camera,
+in the same order; the energies of the cameras are summed. Pose outputs: rotation (9 values,
+row-major R, model to world), translation (cm, world). Torch is imported inside `run()`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from nodegraph import (FRAMEWISE, Camera, FaceModel, ImageSequence, In, InputError, JsonValue, Landmarks2D,
+                       MeshSequence, Node, NodeParams, Out, Param, ParamSequence)
+from nodegraph.flags import flags_to_mask
+
+from .node_inputs import POSE_NAMES, _checked_plates, _fit_model, _pose_values, _state_from, _views
+from .tuning import PHOTOMETRIC_WEIGHT, photometric_weight_for
+
+__all__ = ["RigidPose", "Expression"]
+
+
+class _FitParams(NodeParams):
+    iterations: int = Param(10, ge=1, le=500, description="Levenberg-Marquardt iterations per stage (at most).")
+    rounds: int = Param(4, ge=1, le=10, description="Outer rounds (render, read with the network, anchor, "
+                        "run the stages).")
+    edge_weight: float = Param(1.0, ge=0, description="mu of the edge-preserving term on consecutive landmark "
+                               "differences.")
+    eyelid_weight: float = Param(0.2, ge=0, description="Weight of the eyelid landmarks (others 1).")
+    supersample: int = Param(2, ge=1, le=4, description="Supersampling of the renders the network reads.")
+    backprop_steps: int = Param(0, ge=0, le=200, description="Extra Adam steps on the deep energy "
+                                "backpropagated through the network and the renderer (the paper's literal "
+                                "solver; slow on a CPU).")
+    photometric_weight: float = Param(PHOTOMETRIC_WEIGHT, ge=0, description="w_p of the photometric term "
+                                      "(fit.photometric: the plate at the head's surface points against the "
+                                      "render's colour, robust), 256-crop pixel^2 per (0.01 linear)^2 of mean "
+                                      "residual, scaled up on noisy plates "
+                                      "(nodes.fit.tuning.photometric_weight_for, from the appearance's "
+                                      "'plate_noise'); used when `images` is connected; 0 = landmarks only. The "
+                                      "default holds the surface where the landmarks are ambiguous without "
+                                      "outweighing them (measurements: nodes.fit.tuning.PHOTOMETRIC_WEIGHT).")
+    batch: int = Param(8, ge=1, description="Frames solved together.", affects_output=False)
+
+
+def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: list[ParamSequence],
+             cameras: list[Camera], model: FaceModel, appearance: JsonValue | None,
+             start: np.ndarray | None, images: list[ImageSequence] | None = None) -> dict[str, Any]:
+    import torch
+
+    from ..landmarks.network import load_face_mesh
+    from .solve import RIGID_STAGES, expression_stages, fit_stages, initial_pose, refine_backprop
+
+    p = node.params
+    torch.manual_seed(node.seed)
+    dev = node.device
+    fm = _fit_model(model, appearance, dev)
+    views = _views(landmarks, boxes, cameras, dev)
+    frames = views.seen.shape[0]
+    plates = _checked_plates(images, cameras, frames) if images else None
+    photo = bool(plates) and p.photometric_weight > 0
+    k = len(model.expression_names)
+    found = views.seen.any(1).cpu().numpy()
+    pose = np.full((frames, 12), np.nan, np.float32)
+    weights = np.full((frames, k), np.nan, np.float32)
+    energy = np.full(frames, np.nan, np.float32)
+    if start is not None:
+        found &= np.isfinite(start).all(1)
+    network = load_face_mesh(dev)
+    idx = np.flatnonzero(found)
+    for n0 in range(0, len(idx), p.batch):
+        sel = idx[n0:n0 + p.batch]
+        sub = _views(landmarks, boxes, cameras, dev, select=sel, plates=plates if photo else None)
+        if start is None:
+            state = initial_pose(fm, sub)
+            stages, first_on_landmarks = RIGID_STAGES, True
+        else:
+            state = _state_from(start[sel, :12], np.nan_to_num(start[sel, 12:12 + k]) if start.shape[1] > 12
+                                else np.zeros((len(sel), k), np.float32), dev)
+            stages, first_on_landmarks = expression_stages(model.expression_names), False
+            if getattr(p, "hold_pose", False):
+                stages = tuple(dataclasses.replace(stage, rotation=False, translation=False) for stage in stages)
+        state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
+                                 first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
+                                 edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
+                                 supersample=p.supersample,
+                                 photometric_weight=photometric_weight_for(p.photometric_weight, appearance) if photo
+                                 else 0.0)
+        if p.backprop_steps:
+            state, e = refine_backprop(fm, sub, state, stages[-1], network, steps=p.backprop_steps,
+                                       prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
+                                       eyelid_weight=p.eyelid_weight, supersample=p.supersample)
+        pose[sel] = _pose_values(state)
+        weights[sel] = state.weights.cpu().numpy()
+        energy[sel] = e.cpu().numpy()
+        node.progress(min(n0 + p.batch, len(idx)) / max(len(idx), 1), f"{stages_kind}: {n0 + len(sel)} frames")
+    return {"pose": pose, "weights": weights, "energy": energy, "failed": ~found}
+
+
+class RigidPose(Node):
+    """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
+
+    type_name = "fit.RigidPose"
+    version = 5
+    kind = FRAMEWISE
+    resources = {"gpu": 1}
+    Params = _FitParams
+
+    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
+    boxes = In(ParamSequence, many=True, doc="Crop boxes x0 y0 x1 y1, one per camera.")
+    cameras = In(Camera, many=True, doc="The calibrated cameras, in the same order.")
+    model = In(FaceModel, doc="The face model (identity applied).")
+    appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
+    images = In(ImageSequence, many=True, optional=True, doc="The plates, one per camera in the same order, for "
+                "the photometric term (landmarks only when absent).")
+    pose = Out(ParamSequence, doc="r00..r22 (model to world), tx ty tz cm; NaN where failed.")
+    energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
+    failed = Out(ParamSequence, doc="failed: 1 where no camera found the face.")
+
+    def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
+            model: FaceModel, appearance: JsonValue | None = None,
+            images: list[ImageSequence] | None = None) -> dict[str, ParamSequence]:
+        out = _run_fit(self, "rigid", landmarks, boxes, cameras, model, appearance, None, images)
+        return {"pose": ParamSequence(out["pose"], list(POSE_NAMES)),
+                "energy": ParamSequence(out["energy"][:, None], ["energy"]),
+                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
+
+
+class _ExpressionParams(_FitParams):
+    prior: float = Param(100.0, ge=0, description="lambda of the L2 prior on the active weights (the paper's "
+                         "1e2), 256-crop pixel^2 per unit weight^2.")
+    hold_pose: bool = Param(False, description="Keep the rigid pose of `pose` fixed in every stage (re-estimating "
+                            "the expression after temporal smoothing of the rigid motion); frames without "
+                            "landmarks then keep the input's values instead of failing.")
+
+
+class Expression(Node):
+    """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
+
+    type_name = "fit.Expression"
+    version = 5
+    kind = FRAMEWISE
+    resources = {"gpu": 1}
+    Params = _ExpressionParams
+
+    landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
+    boxes = In(ParamSequence, many=True, doc="Crop boxes, one per camera.")
+    cameras = In(Camera, many=True, doc="The cameras, in the same order.")
+    model = In(FaceModel, doc="The face model (identity applied).")
+    appearance = In(JsonValue, optional=True, doc="Albedo and lighting of the renders (default if absent).")
+    pose = In(ParamSequence, doc="From fit.RigidPose (12 columns), or a fit (12 + one per expression weight, "
+              "the weights then start the solve), e.g. temporally smoothed.")
+    images = In(ImageSequence, many=True, optional=True, doc="The plates, one per camera in the same order, for "
+                "the photometric term (landmarks only when absent).")
+    keep = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0: frames passed through unchanged from "
+              "`pose` (e.g. frames filled by flow whose plates gave no usable landmarks).")
+    fitted = Out(ParamSequence, doc="r00..r22, tx ty tz (cm), then one column per expression weight.")
+    mesh = Out(MeshSequence, doc="(F, V, 3) the fitted head, world frame, cm (the unposed neutral where "
+                  "failed: read `failed`).")
+    energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2 (NaN for passed-through frames).")
+    failed = Out(ParamSequence, doc="failed: 1 where no face or no rigid pose.")
+
+    def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
+            model: FaceModel, pose: ParamSequence, appearance: JsonValue | None = None,
+            keep: ParamSequence | None = None, images: list[ImageSequence] | None = None) -> dict[str, Any]:
+        k = len(model.expression_names)
+        start = np.asarray(pose.values, np.float32)
+        if start.shape[1] not in (12, 12 + k):
+            raise InputError("pose", f"expected 12 columns {POSE_NAMES} or {12 + k} (pose + the model's {k} "
+                                     f"weights), found {start.shape[1]}")
+        if keep is not None and (keep.num_frames != len(start) or keep.values.shape[1] < 1):
+            raise InputError("keep", f"expected ({len(start)}, 1+) flags, found {keep.values.shape}")
+        passed = flags_to_mask(keep, len(start), name=keep.names[0] if keep is not None else "", where="keep")
+        out = _run_fit(self, "expression", landmarks, boxes, cameras, model, appearance,
+                       np.where(passed[:, None], np.nan, start), images)
+        finite = np.isfinite(start).all(1) if start.shape[1] == 12 + k else np.zeros(len(start), bool)
+        through = finite & (passed | (out["failed"] & self.params.hold_pose))
+        if through.any():
+            out["pose"][through] = start[through, :12]
+            out["weights"][through] = start[through, 12:]
+            out["failed"] = out["failed"] & ~through
+        values = np.concatenate([out["pose"], out["weights"]], 1)
+        rot = out["pose"][:, :9].reshape(-1, 3, 3)
+        verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \
+            + np.nan_to_num(out["pose"][:, None, 9:12])
+        verts[out["failed"]] = model.neutral  # meshes must be finite: failed frames hold the unposed neutral
+        return {"fitted": ParamSequence(values, list(POSE_NAMES) + list(model.expression_names)),
+                "mesh": MeshSequence(verts.astype(np.float32), np.asarray(model.faces)),
+                "energy": ParamSequence(out["energy"][:, None], ["energy"]),
+                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
