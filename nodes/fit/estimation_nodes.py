@@ -221,7 +221,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 5
+    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = SEQUENCE
     resources = {"gpu": 1}
 

@@ -14,7 +14,7 @@ view's samples, `rho_i` a Huber weight (fixed per round from the residual at its
 that hair, teeth, occluders and a wrong background count little) and `sigma_0 = 0.01` linear
 units. `w_p` is in the landmark energy's units (256-crop pixel^2): with `w_p = 68` a view's
 photometric residual of 0.01 everywhere weighs as much as a 1 px error on each of the 68
-landmarks (the nodes' default is 500, `nodes.fit.nodes.PHOTOMETRIC_WEIGHT`). The landmarks find the face from far; this term then holds the surface where the
+landmarks (the nodes' default is 500, `nodes.fit.tuning.PHOTOMETRIC_WEIGHT`). The landmarks find the face from far; this term then holds the surface where the
 plate shows it, which the landmarks (a network's reading, a few pixels noisy, with an
 identity that is only estimated) pin less well, most of all in pitch.
 
