@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ..geometry.rigid import apply_rigid, rigid_matrix
 from ..geometry.rotation import axis_angle_to_rotmat, skew
 
-__all__ = ["IcpResult", "vertex_normals", "robust_weights", "robust_icp"]
+__all__ = ["IcpResult", "robust_weights", "robust_icp"]
 
 Loss = Literal["geman_mcclure", "huber", "l2"]
 
@@ -43,31 +43,6 @@ class IcpResult(NamedTuple):
     iterations: np.ndarray
     converged: np.ndarray
     rms_cm: np.ndarray
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Return area-weighted unit vertex normals.
-
-    Args:
-        vertices: (V, 3) float, cm.
-        faces: (T, 3) int vertex indices, counter-clockwise seen from outside.
-    Returns:
-        (V, 3) float64 unit normals; zero rows for vertices in no face (or only in
-        zero-area faces).
-    """
-    vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"vertices: expected shape (V, 3), found {vertices.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"faces: expected shape (T, 3), found {faces.shape}")
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    face_n = np.cross(b - a, c - a)  # length = 2 * area: area weighting for free
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_n)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
 
 def robust_weights(residuals: np.ndarray, scale: np.ndarray | float, loss: Loss) -> np.ndarray:

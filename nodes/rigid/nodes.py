@@ -323,7 +323,8 @@ class ICP(Node):
     def run(self, mesh: MeshSequence, reference: MeshSequence) -> dict:
         from scipy.spatial import cKDTree
 
-        from .icp import robust_icp, vertex_normals
+        from ..geometry.mesh import vertex_normals
+        from .icp import robust_icp
 
         p = self.params
         ref = _check_reference(reference, mesh)

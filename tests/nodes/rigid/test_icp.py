@@ -5,7 +5,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from nodes.rigid.icp import robust_icp, robust_weights, vertex_normals
+from nodes.geometry.mesh import vertex_normals
+from nodes.rigid.icp import robust_icp, robust_weights
 from nodes.geometry.rigid import apply_rigid, invert_rigid, rigid_matrix, rotation_angle
 
 
@@ -42,28 +43,6 @@ def _errors(estimate, truth, centre):
     rel = invert_rigid(truth) @ estimate
     moved = apply_rigid(rel, centre[None])[:, 0]
     return np.rad2deg(rotation_angle(rel[:, :3, :3])), np.linalg.norm(moved - centre, axis=1)
-
-
-def test_vertex_normals_match_float64_loop_and_sphere():
-    v, f = _head(2)
-    normals = vertex_normals(v, f)
-    expected = np.zeros_like(v)
-    for a, b, c in f:  # independent reference: accumulate area-weighted face normals
-        n = np.cross(v[b] - v[a], v[c] - v[a])
-        for i in (a, b, c):
-            expected[i] += n
-    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
-    np.testing.assert_allclose(normals, expected, atol=1e-12)
-    sphere = trimesh.creation.icosphere(subdivisions=4)  # unit sphere: normal ~ position
-    cosine = (vertex_normals(sphere.vertices, sphere.faces) * sphere.vertices).sum(1)
-    assert cosine.min() > 0.999
-
-
-def test_vertex_normals_are_zero_for_unused_vertices():
-    v = np.array([[0., 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]])
-    normals = vertex_normals(v, np.array([[0, 1, 2]]))
-    np.testing.assert_allclose(normals[:3], [[0, 0, 1]] * 3)
-    np.testing.assert_array_equal(normals[3], 0)
 
 
 @pytest.mark.parametrize("loss", ["geman_mcclure", "huber"])
