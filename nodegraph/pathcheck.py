@@ -14,7 +14,7 @@ Refused (exit 2, one message naming both nodes, both parameters and the path): a
 that is an input file; an output file an input pattern would read; an output pattern that
 could produce an input file, or that shares an input pattern's folder, prefix and extension;
 an output folder that is, or contains, an input file, folder or an input pattern's folder;
-an output inside an input folder; two outputs of the run at one path (or patterns that can name
+an output inside an input folder or inside the run's cache folder; two outputs of the run at one path (or patterns that can name
 the same files, or one output's file path another's folder). Also refused: an output whose nearest existing parent is a
 regular file, or whose folder cannot be created or written (`os.access` on the nearest
 existing ancestor, then a hidden folder made and removed there, as the run's staging will:
@@ -203,8 +203,10 @@ def _writable(out: PathParam) -> str:
     return ""
 
 
-def output_path_issues(nodes: dict[str, Node]) -> list[GraphIssue]:
-    """Every problem of the output paths of `nodes` (id -> instance), as graph issues."""
+def output_path_issues(nodes: dict[str, Node], cache_root: str | os.PathLike | None = None) -> list[GraphIssue]:
+    """Every problem of the output paths of `nodes` (id -> instance), as graph issues; with
+    `cache_root`, also an output inside the run's cache folder (`nodegraph cache gc` or `clear`
+    would delete it with the cache's entries)."""
     outputs = [PathParam(nid, name, value, classify(value, name, True))
                for nid, node in nodes.items() for name, value in _values(node, "output_file")]
     if not outputs:
@@ -215,6 +217,11 @@ def output_path_issues(nodes: dict[str, Node]) -> list[GraphIssue]:
         problem = _writable(out)
         if problem:
             issues.append(GraphIssue(out.node, out.param, f"output '{out.value}': {problem}"))
+            continue
+        if cache_root is not None and _inside(out.real, os.path.realpath(cache_root)):
+            issues.append(GraphIssue(out.node, out.param, f"output '{out.value}' is inside the cache folder "
+                                     f"'{cache_root}', whose cleaning (nodegraph cache gc / clear) would delete "
+                                     "it; choose another output path"))
             continue
         for inp in inputs:
             clash = _clash(out, inp)
@@ -263,10 +270,12 @@ def _needed_nodes(plan: Plan) -> list[str]:
     return [nid for nid in graph.topological_order() if nid in seen]
 
 
-def check_output_paths(plan: Plan, nodes: Iterable[str] | None = None) -> None:
+def check_output_paths(plan: Plan, nodes: Iterable[str] | None = None,
+                       cache_root: str | os.PathLike | None = None) -> None:
     """Raise GraphError (exit 2) listing every output path problem of `nodes` (default: the
-    plan's targets and everything upstream of them), before anything runs."""
+    plan's targets and everything upstream of them), before anything runs; `cache_root`: the
+    run's cache folder, which no output may be inside."""
     ids = list(nodes) if nodes is not None else _needed_nodes(plan)
-    issues = output_path_issues({nid: plan.nodes[nid] for nid in ids})
+    issues = output_path_issues({nid: plan.nodes[nid] for nid in ids}, cache_root)
     if issues:
         raise GraphError(issues)

@@ -169,7 +169,8 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
         plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
                         force=force, device=device)
         if attempt == 0:
-            check_output_paths(plan)  # outputs that would destroy inputs, unwritable folders: exit 2
+            # outputs that would destroy inputs, unwritable folders, outputs in the cache: exit 2
+            check_output_paths(plan, cache_root=store.root if store is not None else None)
         names = plan.needed()
         specs = task_specs(plan, names, store, mode, token)
         dsk = dask_graph(plan, names, specs)

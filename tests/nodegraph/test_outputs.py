@@ -202,6 +202,18 @@ def test_two_outputs_at_one_path_are_refused_before_running(tmp_path, cache_dir,
     assert (tmp_path / "elsewhere.txt").read_text() == "".join(_line(i) for i in range(6))
 
 
+def test_output_inside_the_cache_folder_is_refused_before_running(tmp_path, cache_dir):
+    """`nodegraph cache gc` / `clear` delete what is in the cache folder: an output there would be
+    lost with the cache's entries."""
+    source = _numbers(tmp_path / "shot.txt")
+    inside = cache_dir / "results" / "lines.txt"
+    with pytest.raises(GraphError, match=r"node 'save', 'path': output '.*lines.txt' is inside the cache folder"):
+        run(_lines_to(tmp_path, source, str(inside)), cache=cache_dir, scheduler="sync")
+    assert not inside.exists() and not (cache_dir / "objects").exists()  # nothing ran
+    run(_lines_to(tmp_path, source, str(inside)), cache=False, scheduler="sync")  # no cache: nothing to clean
+    assert inside.read_text() == "".join(_line(i) for i in range(6))
+
+
 def test_empty_output_path_is_not_checked(tmp_path, cache_dir):
     source = _numbers(tmp_path / "shot.txt")
     g = _lines_to(tmp_path, source, "", writer="test.WriteSummary", param="folder")
