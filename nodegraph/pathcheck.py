@@ -14,13 +14,13 @@ Refused (exit 2, one message naming both nodes, both parameters and the path): a
 that is an input file; an output file an input pattern would read; an output pattern that
 could produce an input file, or that shares an input pattern's folder, prefix and extension;
 an output folder that is, or contains, an input file, folder or an input pattern's folder;
-an output inside an input folder or inside the run's cache folder; two outputs of the run at one path (or patterns that can name
-the same files, or one output's file path another's folder). Also refused: an output whose nearest existing parent is a
-regular file, or whose folder cannot be created or written (`os.access` on the nearest
-existing ancestor, then a hidden folder made and removed there, as the run's staging will:
-root passes `os.access` everywhere, yet cannot write in /proc, /sys or a read-only mount),
-a file output that is a folder and a folder output that is a file. An
-empty output path ('' = write nothing) is skipped.
+an output inside an input folder or inside the run's cache folder; two outputs of the run at
+one path (or patterns that can name the same files, or one output's file path another's
+folder). Also refused: an output whose nearest existing parent is a regular file, or whose
+folder cannot be created or written (`os.access` on the nearest existing ancestor, then a
+hidden folder made and removed there, as the run's staging will: root passes `os.access`
+everywhere, yet cannot write in /proc, /sys or a read-only mount), a file output that is a
+folder and a folder output that is a file. An empty output path ('' = write nothing) is skipped.
 """
 
 from __future__ import annotations

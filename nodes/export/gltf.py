@@ -22,8 +22,7 @@ from nodegraph import Camera, FaceModel, Param, Performance
 from nodegraph.files import atomic_path
 
 from ..geometry.mesh import vertex_normals
-from ..geometry.rotation import quat_sequence_continuous, rotmat_to_quat
-from .scene import SceneWriter, SceneWriterParams, blendshapes, head_transforms
+from .scene import SceneWriter, SceneWriterParams, blendshapes, head_quaternions, head_transforms
 
 __all__ = ["split_uv_seams", "write_gltf_animation", "GltfAnimation"]
 
@@ -118,8 +117,7 @@ def write_gltf_animation(path: str | Path, model: FaceModel, performance: Perfor
                    extras={"targetNames": list(shapes.names)})
 
     times = (np.arange(f) / float(performance.fps)).astype(np.float32)
-    wxyz = quat_sequence_continuous(rotmat_to_quat(rigid[:, :3, :3])) if f else np.zeros((0, 4))
-    quats = wxyz[:, [1, 2, 3, 0]].astype(np.float32)  # glTF's order: x, y, z, w
+    quats = head_quaternions(rigid)[:, [1, 2, 3, 0]].astype(np.float32)  # glTF's order: x, y, z, w
     translation = (rigid[:, :3, 3] * M_PER_CM).astype(np.float32)
     time_acc = pack.add(times, gl.SCALAR, bounds=True)
     samplers = [gl.AnimationSampler(input=time_acc, output=pack.add(shapes.weights.reshape(-1), gl.SCALAR),

@@ -19,9 +19,10 @@ from pydantic import field_validator
 from nodegraph import SEQUENCE, Camera, FaceModel, Files, In, InputError, Node, NodeParams, Out, Param, Performance
 from nodegraph.files import check_output_suffix, files_value
 
+from ..geometry.rotation import quat_sequence_continuous, rotmat_to_quat
 from ..io.arkit import OPENCV_TO_ARKIT, shape_basis
 
-__all__ = ["head_transforms", "Blendshapes", "blendshapes", "SceneWriterParams", "SceneWriter"]
+__all__ = ["head_transforms", "head_quaternions", "Blendshapes", "blendshapes", "SceneWriterParams", "SceneWriter"]
 
 
 def head_transforms(performance: Performance, camera: Camera | None = None) -> np.ndarray:
@@ -38,6 +39,14 @@ def head_transforms(performance: Performance, camera: Camera | None = None) -> n
     to_file = np.eye(4)
     to_file[:3, :3] = OPENCV_TO_ARKIT
     return to_file @ np.asarray(camera.world_to_camera, np.float64) @ rigid
+
+
+def head_quaternions(transforms: np.ndarray) -> np.ndarray:
+    """(F, 4) unit quaternions (w, x, y, z) of (F, 4, 4) `head_transforms`, sign-continuous over the
+    frames (a file's curve never turns the long way between q and -q); (0, 4) for no frames."""
+    if not len(transforms):
+        return np.zeros((0, 4))
+    return quat_sequence_continuous(rotmat_to_quat(np.asarray(transforms)[:, :3, :3]))
 
 
 @dataclass

@@ -24,17 +24,9 @@ from nodegraph import Camera, FaceModel, Param, Performance
 from nodegraph.files import atomic_path
 
 from ..geometry.mesh import vertex_normals
-from ..geometry.rotation import quat_sequence_continuous, rotmat_to_quat
-from .scene import SceneWriter, SceneWriterParams, blendshapes, head_transforms
+from .scene import SceneWriter, SceneWriterParams, blendshapes, head_quaternions, head_transforms
 
 __all__ = ["write_usd_animation", "UsdAnimation"]
-
-
-def _quaternions_wxyz(rotation: np.ndarray) -> np.ndarray:
-    """(F, 3, 3) rotations -> (F, 4) unit quaternions (w, x, y, z), sign-continuous over the frames."""
-    if not len(rotation):
-        return np.zeros((0, 4))
-    return quat_sequence_continuous(rotmat_to_quat(rotation))
 
 
 def write_usd_animation(path: str | Path, model: FaceModel, performance: Performance,
@@ -77,7 +69,7 @@ def write_usd_animation(path: str | Path, model: FaceModel, performance: Perform
     anim.CreateJointsAttr(Vt.TokenArray(["head"]))
     anim.CreateBlendShapesAttr(Vt.TokenArray(tokens))
     UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
-    quats = _quaternions_wxyz(rigid[:, :3, :3])
+    quats = head_quaternions(rigid)
     translations = anim.CreateTranslationsAttr()
     rotations = anim.CreateRotationsAttr()
     anim.CreateScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1.0, 1.0, 1.0)]))
