@@ -39,7 +39,7 @@ def import_seconds(module: str) -> float:
     return best
 
 
-def node_table(result, frames: int) -> list[tuple[str, float, int]]:
+def node_table(result) -> list[tuple[str, float, int]]:
     """(node, summed task seconds, chunks) per node, largest first."""
     seconds: dict[str, float] = collections.defaultdict(float)
     chunks: dict[str, int] = collections.defaultdict(int)
@@ -51,7 +51,7 @@ def node_table(result, frames: int) -> list[tuple[str, float, int]]:
 
 
 def print_table(title: str, result, frames: int, wall: float) -> None:
-    rows = node_table(result, frames)
+    rows = node_table(result)
     total = sum(s for _, s, _ in rows)
     print(f"\n{title}: {frames} frames, wall {wall:.1f} s, task time {total:.1f} s "
           f"({'ok' if result.ok else 'FAILED'})")
