@@ -39,7 +39,7 @@ def main() -> None:
     from nodes.landmarks.correspondence import inter_ocular_distance, mediapipe_to_68
     from nodes.landmarks.network import (detect_faces, face_landmarks, load_face_detector,
                                          load_face_mesh, srgb_encode)
-    from nodes.render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, hidden_faces
+    from nodes.render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, visible_faces
     from nodes.render.renderer import render_mesh, triangle_adjacency
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -47,7 +47,7 @@ def main() -> None:
           + ("" if len(devices) > 1 else " (no CUDA GPU on this machine)"))
     model = load_face_model()
     albedo, sh = default_albedo(model), default_sh()
-    faces = np.delete(model.faces, hidden_faces(model.faces), axis=0)
+    faces = visible_faces(model.faces, model.neutral.shape[0])
     adjacency = triangle_adjacency(faces)
     extrinsics = np.array([[1.0, 0, 0, 0], [0, -1, 0, 1.0], [0, 0, -1, 55.0], [0, 0, 0, 1]])
     rows = []

@@ -27,7 +27,7 @@ import numpy as np
 from nodegraph import FaceModel
 
 __all__ = ["ICT_HIDDEN_VERTEX_RANGES", "COLOURS", "BROW_HALF_WIDTH_CM", "DEFAULT_LIGHT", "hidden_faces",
-           "default_albedo", "default_sh", "appearance_json", "parse_appearance"]
+           "visible_faces", "default_albedo", "default_sh", "appearance_json", "parse_appearance"]
 
 ICT_HIDDEN_VERTEX_RANGES = ((24591, 25350), (25351, 26718))
 """Inclusive vertex ranges of the ICT head not drawn: transparent eye shells (lacrimal fluid,
@@ -72,6 +72,30 @@ def hidden_faces(faces: np.ndarray, ranges: tuple[tuple[int, int], ...] = ICT_HI
     for first, last in ranges:
         hide |= ((faces >= first) & (faces <= last)).any(1)
     return np.flatnonzero(hide)
+
+
+def visible_faces(faces: np.ndarray, num_vertices: int,
+                  ranges: tuple[tuple[int, int], ...] = ICT_HIDDEN_VERTEX_RANGES) -> np.ndarray:
+    """The triangles drawn: `faces` less those with a corner in the hidden vertex `ranges`
+    (`hidden_faces`), when the mesh is the whole head the ranges index (more than the last
+    range's end vertices); all of `faces` for a smaller mesh (a region or a reduced model is
+    indexed differently, so the ranges do not apply).
+
+    Args:
+        faces: (T, 3) int vertex indices.
+        num_vertices: V, the mesh's vertex count.
+        ranges: inclusive (first, last) vertex ranges.
+    Returns:
+        (T', 3) int64, in the order of `faces`.
+
+    Example:
+        >>> visible_faces(np.array([[0, 1, 2], [1, 2, 3]]), 4, ((3, 3),)).tolist()
+        [[0, 1, 2]]
+    """
+    faces = np.asarray(faces, np.int64)
+    if num_vertices <= max((last for _, last in ranges), default=-1):
+        return faces
+    return np.delete(faces, hidden_faces(faces, ranges), axis=0)
 
 
 def _inside_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:

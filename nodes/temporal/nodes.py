@@ -63,11 +63,9 @@ class _FlowNode(Node):
         if plate_flow.flow.shape[1:3] != (camera.height, camera.width):
             raise InputError("plate_flow", f"expected flow of the camera's size ({camera.height}, {camera.width}), "
                              f"found {plate_flow.flow.shape[1:3]}")
-        from ..render.appearance import ICT_HIDDEN_VERTEX_RANGES, hidden_faces
+        from ..render.appearance import visible_faces
 
-        faces = np.asarray(model.faces, np.int64)
-        if model.neutral.shape[0] > ICT_HIDDEN_VERTEX_RANGES[-1][1]:
-            faces = faces[np.setdiff1d(np.arange(len(faces)), hidden_faces(faces))]
+        faces = visible_faces(model.faces, model.neutral.shape[0])
         fm = FlowModel.build(model.neutral, model.expression_deltas, faces, camera.world_to_camera,
                              [camera.fx, camera.fy, camera.cx, camera.cy], camera.height, camera.width,
                              _shape_ids(model.expression_names, shapes), stride=stride, device=self.device)

@@ -15,7 +15,7 @@ from nodes.fit.appearance import albedo_smoothing_steps, estimate_appearance  # 
 from nodes.fit.frame_selection import _render_noise, painting_frame_count  # noqa: E402
 from nodes.fit.tuning import PHOTOMETRIC_REFERENCE_NOISE, photometric_weight_for  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
-from nodes.render.appearance import default_albedo, hidden_faces  # noqa: E402
+from nodes.render.appearance import default_albedo, visible_faces  # noqa: E402
 from nodes.render.renderer import render_mesh, sh_from_lights  # noqa: E402
 
 SIZE = 256
@@ -24,7 +24,7 @@ SIZE = 256
 @pytest.fixture(scope="module")
 def scene():
     face = load_face_model()
-    faces = np.delete(np.asarray(face.faces), hidden_faces(face.faces), axis=0)
+    faces = visible_faces(face.faces, face.neutral.shape[0])
     cam = Camera.from_fov(SIZE, SIZE, 30.0)
     tint = np.array([1.1, 0.9, 0.95], np.float32)
     a0 = default_albedo(face)
