@@ -4,6 +4,10 @@
 Everything cached is read in-process without importing dask. On a cluster each task is
 submitted with the resources its node declares (`resources = {"gpu": 1}`), when some worker
 offers them.
+
+The dask keys are text: a task's value under its name's text ("fit|0:64"), its record under
+"meta|fit|0:64" and a writer's staged files under "stage|fit|0:64" (`value_key`, `meta_key`,
+`stage_key`); they are made from `TaskName`s and never taken apart again.
 """
 
 from __future__ import annotations
@@ -14,13 +18,15 @@ from typing import Any, Mapping
 
 from .cache import Cache
 from .errors import SchedulerError
+from .plan_names import TaskName
 from .progress import Reporter
 from .schedule import Plan
 from .staging import StagedFile
 from .tasks import (IN_PROCESS, TaskResult, TaskSpec, compute_logged_task, compute_task, in_process_run,
                     load_task, task_meta, task_staged)
 
-__all__ = ["SCHEDULERS", "CONNECT_TIMEOUT_S", "check_scheduler", "task_specs", "dask_graph", "execute"]
+__all__ = ["SCHEDULERS", "CONNECT_TIMEOUT_S", "check_scheduler", "task_specs", "dask_graph", "execute",
+           "value_key", "meta_key", "stage_key"]
 
 SCHEDULERS = ("sync", "threads", "processes")
 """The local schedulers by name (anything else is a dask.distributed address or Client)."""
@@ -31,8 +37,23 @@ CONNECT_TIMEOUT_S = 10.0
 _ADDRESS = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?[^\s/]+:\d+|inproc://\S+")
 
 
-def task_specs(plan: Plan, names: list[str], cache: Cache | None, progress: str,
-               stage: str = "") -> dict[str, TaskSpec]:
+def value_key(name: TaskName) -> str:
+    """The dask key of a task's `TaskResult`."""
+    return str(name)
+
+
+def meta_key(name: TaskName) -> str:
+    """The dask key of a task's record (`TaskResult.meta`)."""
+    return f"meta|{name}"
+
+
+def stage_key(name: TaskName) -> str:
+    """The dask key of the files a writer task staged."""
+    return f"stage|{name}"
+
+
+def task_specs(plan: Plan, names: list[TaskName], cache: Cache | None, progress: str,
+               stage: str = "") -> dict[TaskName, TaskSpec]:
     """One `TaskSpec` per planned task in `names` (plain data a worker can run)."""
     full = (plan.frames.start, plan.frames.stop)
     specs = {}
@@ -50,28 +71,29 @@ def task_specs(plan: Plan, names: list[str], cache: Cache | None, progress: str,
     return specs
 
 
-def dask_graph(plan: Plan, names: list[str], specs: dict[str, TaskSpec]) -> dict[str, Any]:
-    """The dask graph of the tasks `names`: a value key per task (loaded or computed), its
-    `meta|` record and, for writers that write, its `stage|` files."""
+def dask_graph(plan: Plan, names: list[TaskName], specs: dict[TaskName, TaskSpec]) -> dict[str, Any]:
+    """The dask graph of the tasks `names`: per task its value (loaded or computed), its record
+    and, for writers that write, its staged files (see the module docstring for the keys)."""
     dsk: dict[str, Any] = {}
     for name in names:
         task = plan.tasks[name]
+        deps = [value_key(dep) for dep in task.deps]
         if task.hit:
-            dsk[name] = (load_task, specs[name])
+            dsk[value_key(name)] = (load_task, specs[name])
         elif specs[name].node_cls.uses_run_log:
-            upstream = [f"meta|{a}" for a in _ancestors(plan, name) if a in specs]  # those this run has
-            dsk[name] = (compute_logged_task, specs[name], len(task.deps), *task.deps, *upstream)
+            upstream = [meta_key(a) for a in _ancestors(plan, name) if a in specs]  # those this run has
+            dsk[value_key(name)] = (compute_logged_task, specs[name], len(deps), *deps, *upstream)
         else:
-            dsk[name] = (compute_task, specs[name], *task.deps)
-        dsk[f"meta|{name}"] = (task_meta, name)
+            dsk[value_key(name)] = (compute_task, specs[name], *deps)
+        dsk[meta_key(name)] = (task_meta, value_key(name))
         if task.writes and (not task.hit or task.restore):
-            dsk[f"stage|{name}"] = (task_staged, name)
+            dsk[stage_key(name)] = (task_staged, value_key(name))
     return dsk
 
 
-def _ancestors(plan: Plan, name: str) -> list[str]:
+def _ancestors(plan: Plan, name: TaskName) -> list[TaskName]:
     """Every task `name` depends on, directly or not, in plan order."""
-    seen: set[str] = set()
+    seen: set[TaskName] = set()
     todo = list(plan.tasks[name].deps)
     while todo:
         dep = todo.pop()
@@ -81,13 +103,18 @@ def _ancestors(plan: Plan, name: str) -> list[str]:
     return [t for t in plan.tasks if t in seen]
 
 
-def execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], scheduler: Any,
-             reporter: Reporter, workers: int | None,
-             resources: Mapping[str, dict[str, float]] | None = None
-             ) -> tuple[list[dict], list[TaskResult], list[StagedFile]]:
-    """Run the dask graph; return the meta records, the values asked for, and every file the
-    run's writers staged (`stage|` keys)."""
-    stage_keys = [key for key in dsk if key.startswith("stage|")]
+def execute(dsk: dict[str, Any], names: list[TaskName], value_names: list[TaskName], scheduler: Any,
+            reporter: Reporter, workers: int | None,
+            resources: Mapping[TaskName, dict[str, float]] | None = None
+            ) -> tuple[list[dict], list[TaskResult], list[StagedFile]]:
+    """Run the dask graph; return the records of the tasks `names` (in that order), the results
+    of the tasks `value_names`, and every file the run's writers staged.
+
+    `resources`: what the node of a task needs on a dask.distributed worker ({"gpu": 1})."""
+    meta_keys = [meta_key(name) for name in names]
+    value_keys = [value_key(name) for name in value_names]
+    stage_keys = [key for key, task in dsk.items() if task[0] is task_staged]
+    needs_by_key = {value_key(name): needs for name, needs in (resources or {}).items()}
     keys = meta_keys + value_keys + stage_keys
     count = len(meta_keys) + len(value_keys)
     if isinstance(scheduler, str) and scheduler in SCHEDULERS and all(
@@ -98,8 +125,9 @@ def execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], sc
             if task[0] is load_task:
                 loaded[key] = load_task(task[1])
                 reporter.update(loaded[key].meta())
-        return ([loaded[k.partition("|")[2]].meta() for k in meta_keys], [loaded[k] for k in value_keys],
-                [entry for k in stage_keys for entry in loaded[k.partition("|")[2]].staged])
+        # a record's and a staging task's one argument is the key of the task's value
+        return ([loaded[dsk[k][1]].meta() for k in meta_keys], [loaded[k] for k in value_keys],
+                [entry for k in stage_keys for entry in loaded[dsk[k][1]].staged])
     if isinstance(scheduler, str) and scheduler in SCHEDULERS:
         import dask.local
         from dask.callbacks import Callback
@@ -134,7 +162,7 @@ def execute(dsk: dict[str, Any], meta_keys: list[str], value_keys: list[str], sc
             offered |= set(worker.get("resources") or {})
         # Only ask for resources some worker offers, else the tasks would wait forever.
         wanted = {key: {r: amount for r, amount in res.items() if r in offered}
-                  for key, res in (resources or {}).items()}
+                  for key, res in needs_by_key.items()}
         wanted = {key: res for key, res in wanted.items() if res}
         # One submit per task (dsk is in dependency order): per-task resources are honoured this
         # way, whereas `Client.get(resources=...)` applies one requirement to every task.

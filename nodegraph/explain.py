@@ -36,8 +36,8 @@ def explain(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             reason = "no cache"
         else:
             last = last_by_node.setdefault(task.node, store.read_last(task.node))
-            reason = explain_miss(task, last.get(name) or _same_node_other_chunk(last, task), store)
-        rows.append({"node": task.node, "task": name, "frames": list(task.out_frames), "hit": task.hit,
+            reason = explain_miss(task, last.get(str(name)) or _same_node_other_chunk(last, task), store)
+        rows.append({"node": task.node, "task": str(name), "frames": list(task.out_frames), "hit": task.hit,
                      "reason": reason})
     return rows
 

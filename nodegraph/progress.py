@@ -13,6 +13,7 @@ import warnings
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 if TYPE_CHECKING:
+    from .plan_names import TaskName
     from .runner import RunResult
     from .schedule import Plan
 
@@ -66,7 +67,7 @@ def progress_callback(mode: str, node: str, frames: tuple[int, int]) -> Callable
 class Reporter:
     """Per-node progress: tqdm bars on a terminal, JSON lines otherwise, or nothing."""
 
-    def __init__(self, plan: "Plan", names: list[str], mode: str):
+    def __init__(self, plan: "Plan", names: list["TaskName"], mode: str):
         self.mode = mode
         self.totals: dict[str, int] = {}
         for name in names:

@@ -30,6 +30,7 @@ from .node import _field_flag
 from .pathcheck import check_output_paths
 from .ports import PortType
 from .progress import Reporter, progress_mode, warnings_as_events
+from .plan_names import TaskName
 from .schedule import Plan, plan_run
 from .staging import commit, discard, new_token
 from .tasks import IN_PROCESS, OK_STATUSES, TaskResult, TaskSpec, combine, preload
@@ -182,9 +183,8 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
         if scheduler in IN_PROCESS:
             preload([m for n in names if not plan.tasks[n].hit for m in plan.nodes[plan.tasks[n].node].preload])
         try:
-            metas, results, staged = execute(dsk, [f"meta|{n}" for n in names], value_names, scheduler, reporter,
-                                              workers, {n: dict(plan.nodes[plan.tasks[n].node].resources)
-                                                        for n in gpu_tasks})
+            metas, results, staged = execute(dsk, names, value_names, scheduler, reporter, workers,
+                                             {n: dict(plan.nodes[plan.tasks[n].node].resources) for n in gpu_tasks})
         except BaseException:
             discard([], token, _destinations(plan, writers))
             raise
@@ -219,7 +219,7 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
         cause = (f"node{'s' if len(failed) > 1 else ''} {', '.join(repr(n) for n in failed)} failed" if failed
                  else "tasks were skipped")
     result = RunResult(out, metas, plan, time.perf_counter() - started, failures, held_back, cause)
-    _record(plan, metas, store)
+    _record(plan, names, metas, store)
     reporter.close(result)
     return result
 
@@ -250,18 +250,19 @@ def _commit_failure(err: OSError) -> dict[str, Any]:
 
 
 
-def _record(plan: Plan, metas: list[dict[str, Any]], store: Cache | None) -> None:
-    """Write error records of failed chunks and the key descriptions used (for --explain)."""
+def _record(plan: Plan, names: Sequence[TaskName], metas: list[dict[str, Any]], store: Cache | None) -> None:
+    """Write error records of failed chunks and the key descriptions used (for --explain);
+    `metas` are the records of the tasks `names`, in that order."""
     if store is None:
         return
     by_node: dict[str, dict[str, Any]] = {}
-    for meta in metas:
-        task = plan.tasks[meta["name"]]
+    for name, meta in zip(names, metas, strict=True):
+        task = plan.tasks[name]
         frames = tuple(meta["frames"]) if task.mode != "static" else None
         if meta["status"] == "failed":
             meta["error"]["record"] = str(store.write_error(meta["error"]))
         elif meta["status"] in OK_STATUSES:
             store.clear_error(task.node, frames if task.mode == "chunk" else None)
-            by_node.setdefault(task.node, store.read_last(task.node))[task.name] = task.description
+            by_node.setdefault(task.node, store.read_last(task.node))[str(task.name)] = task.description
     for node, descriptions in by_node.items():
         store.write_last(node, descriptions)

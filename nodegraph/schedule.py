@@ -24,8 +24,10 @@ from .files import file_sha256
 from .errors import GraphError, GraphIssue, NodeError
 from .graph import Graph
 from .node import SEQUENCE, Node, _field_flag, wrap_error
+from .plan_names import PortSlot, TaskName
 
-__all__ = ["Piece", "TaskPlan", "Plan", "plan_run", "chunk_bounds", "explain_miss", "parse_frames"]
+__all__ = ["Piece", "TaskPlan", "Plan", "PortSlot", "TaskName", "plan_run", "chunk_bounds", "explain_miss",
+           "parse_frames"]
 
 
 @dataclass(frozen=True)
@@ -33,7 +35,7 @@ class Piece:
     """A part of an input value: `task`'s output `port`, frames [start, stop) relative to that
     task's value, or the whole value when start == -1."""
 
-    task: str
+    task: TaskName
     port: str
     start: int = -1
     stop: int = -1
@@ -43,13 +45,13 @@ class Piece:
 class TaskPlan:
     """One (node, chunk) task."""
 
-    name: str
+    name: TaskName
     node: str
     node_type: str
     mode: str
     frames: tuple[int, int]
     out_frames: tuple[int, int]
-    inputs: dict[str, list[Piece]]
+    inputs: dict[PortSlot, list[Piece]]  # in edge order, a list port's connections one slot each
     key: str
     description: dict[str, Any]
     cacheable: bool
@@ -59,10 +61,11 @@ class TaskPlan:
     forced: bool = False
     restore: bool = False  # a writer whose changed files are rewritten from the entry's copies
     stale_files: list[str] = field(default_factory=list)
+    input_ports: dict[str, bool] = field(default_factory=dict)  # the node's declared inputs: name -> many
 
     @property
-    def deps(self) -> list[str]:
-        seen: dict[str, None] = {}
+    def deps(self) -> list[TaskName]:
+        seen: dict[TaskName, None] = {}
         for pieces in self.inputs.values():
             for piece in pieces:
                 seen.setdefault(piece.task, None)
@@ -76,19 +79,19 @@ class Plan:
     graph: Graph
     frames: range
     chunk: int
-    tasks: dict[str, TaskPlan] = field(default_factory=dict)
-    by_node: dict[str, list[str]] = field(default_factory=dict)
+    tasks: dict[TaskName, TaskPlan] = field(default_factory=dict)
+    by_node: dict[str, list[TaskName]] = field(default_factory=dict)
     nodes: dict[str, Node] = field(default_factory=dict)
     targets: list[str] = field(default_factory=list)
     cache: Cache | None = None
     verify: bool = False  # check entries' contents (sha256), not only their sizes
 
-    def needed(self) -> list[str]:
+    def needed(self) -> list[TaskName]:
         """Tasks to schedule: the targets' tasks and, below each miss, what it consumes.
 
         The cache is consulted here, only for the tasks visited, and `TaskPlan.hit` set.
         """
-        need: dict[str, None] = {}
+        need: dict[TaskName, None] = {}
         stack = [t for node in self.targets for t in self.by_node[node]]
         while stack:
             name = stack.pop()
@@ -260,22 +263,24 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
                     files = all_files
             except Exception as err:
                 raise wrap_error(node, err, bad_input=True) from err
-            inputs: dict[str, list[Piece]] = {}
+            inputs: dict[PortSlot, list[Piece]] = {}
             for port, sources in ups[nid].items():
                 decl = node.inputs[port]
                 for index, src in enumerate(sources):
-                    name = f"{port}#{index}" if decl.many else port
-                    inputs[name] = _pieces(plan, src.node, src.port, span if decl.per_frame else None)
+                    slot = PortSlot(port, index) if decl.many else PortSlot(port)
+                    inputs[slot] = _pieces(plan, src.node, src.port, span if decl.per_frame else None)
             description = dict(base)
             description["files"] = files
-            description["inputs"] = {port: [[plan.tasks[p.task].key, p.port, p.start, p.stop] for p in pieces]
-                                     for port, pieces in sorted(inputs.items())}
+            # the slots' text ("views#1") is what cache keys have always held
+            description["inputs"] = {str(slot): [[plan.tasks[p.task].key, p.port, p.start, p.stop] for p in pieces]
+                                     for slot, pieces in sorted(inputs.items(), key=lambda item: str(item[0]))}
             description["frames"] = list(span) if span else None
             description["out"] = list(out) if out else None
-            name = f"{nid}|all" if out is None else f"{nid}|{out[0]}:{out[1]}"
+            name = TaskName(nid, out)
             task = TaskPlan(name, nid, cls.type_name, mode, span or full, out or full, inputs,
                             make_key(description), description, cls.cacheable, writes=cls.writes_files,
-                            device=spec.device or device)
+                            device=spec.device or device,
+                            input_ports={port: decl.many for port, decl in node.inputs.items()})
             task.forced = nid in forced
             plan.tasks[name] = task
             names.append(name)
@@ -365,8 +370,9 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None, cache: Cache | Non
     if last.get("files") != now["files"]:
         reasons.append("input files changed")
     old_inputs, new_inputs = last.get("inputs", {}), now["inputs"]
-    changed_ports = [port.partition("#")[0] for port in sorted(set(old_inputs) | set(new_inputs))
-                     if old_inputs.get(port) != new_inputs.get(port)]
+    port_of = _slot_ports(task, len(old_inputs))
+    changed_ports = [port_of.get(text, text) for text in sorted(set(old_inputs) | set(new_inputs))
+                     if old_inputs.get(text) != new_inputs.get(text)]
     reasons.extend(f"upstream '{port}' changed" for port in dict.fromkeys(changed_ports))
     if last.get("frames") != now["frames"] and not reasons:
         reasons.append(f"frames changed ({last.get('frames')} -> {now['frames']})")
@@ -375,6 +381,14 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None, cache: Cache | Non
     if not reasons and task.writes:
         return "written files not recorded (written by an older nodegraph, or the record was lost)"
     return "; ".join(reasons) if reasons else "entry missing from the cache (evicted or corrupt)"
+
+
+def _slot_ports(task: TaskPlan, count: int) -> dict[str, str]:
+    """The text of every input slot the task's node can have, up to `count` connections per list
+    port, mapped to its port name (a last run's description names its slots by their text)."""
+    slots = [PortSlot(port, index) for port, many in task.input_ports.items() if many for index in range(count)]
+    slots += [PortSlot(port) for port, many in task.input_ports.items() if not many]
+    return {str(slot): slot.port for slot in [*slots, *task.inputs]}
 
 
 def _code_change(old: Any, new: str, cache: Cache | None) -> str:

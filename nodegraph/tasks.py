@@ -28,6 +28,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 from .cache import COPY_LIMIT, Cache, CorruptEntry
 from .errors import NodeError
 from .node import Node, execute, format_exception, task_seed
+from .plan_names import PortSlot, TaskName
 from .ports import PortType
 from .progress import json_warning, progress_callback
 from .staging import StagedFile, publish, staging
@@ -47,14 +48,14 @@ IN_PROCESS = ("sync", "threads")
 class TaskSpec:
     """Everything a worker needs to run one task (plain data plus the node class)."""
 
-    name: str
+    name: TaskName
     node: str
     node_cls: type[Node]
     params: dict[str, Any]
     frames: tuple[int, int]
     out_frames: tuple[int, int]
     full_frames: tuple[int, int]
-    inputs: tuple[tuple[str, tuple[tuple[int, str, int, int], ...]], ...]
+    inputs: tuple[tuple[PortSlot, tuple[tuple[int, str, int, int], ...]], ...]  # (dep, port, lo, hi) pieces
     key: str
     description: dict[str, Any]
     cache_root: str | None
@@ -71,7 +72,7 @@ class TaskSpec:
 class TaskResult:
     """What a task returns: its values, or why it has none."""
 
-    name: str
+    name: TaskName
     node: str
     frames: tuple[int, int]
     status: str  # executed | cached | restored | failed | skipped | corrupt
@@ -81,7 +82,7 @@ class TaskResult:
     staged: tuple[StagedFile, ...] = ()  # a writer's files held back in staging folders
 
     def meta(self) -> dict[str, Any]:
-        return {"name": self.name, "node": self.node, "frames": list(self.frames), "status": self.status,
+        return {"name": str(self.name), "node": self.node, "frames": list(self.frames), "status": self.status,
                 "error": self.error, "seconds": self.seconds}
 
 
@@ -186,13 +187,13 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
             spec.node, spec.node_cls.type_name, f"{type(err).__name__}: {err}")
         record = {
             "node": spec.node, "type": spec.node_cls.type_name,
-            "frames": list(spec.out_frames) if spec.name.split("|")[1] != "all" else None,
+            "frames": list(spec.out_frames) if spec.name.frames is not None else None,
             "key": spec.key, "exception": type(err.__cause__ or err).__name__, "message": str(error),
             "reason": error.message,
             "port": getattr(error, "port", ""), "bad_input": bool(getattr(error, "bad_input", False)),
             "traceback": format_exception(err),
-            "input_keys": {port: [spec.description["inputs"][port][i][0] for i in range(len(pieces))]
-                           for port, pieces in spec.inputs},
+            "input_keys": {str(slot): [spec.description["inputs"][str(slot)][i][0] for i in range(len(pieces))]
+                           for slot, pieces in spec.inputs},
             "time": time.time(),
         }
         return TaskResult(spec.name, spec.node, spec.out_frames, "failed", error=record,
@@ -212,13 +213,12 @@ def _compute(spec: TaskSpec, deps: Sequence[TaskResult]) -> dict[str, PortType]:
     node.cache_root = spec.cache_root  # the run's cache folder (None: no cache), for nodes that keep
     # finer entries of their own there (nodegraph.takes.cached_take: one per file read)
     inputs: dict[str, Any] = {}
-    for port, pieces in spec.inputs:
+    for slot, pieces in spec.inputs:
         value = _COMBINED.get(deps, pieces, pieces[0][2] >= 0)
-        name, many, _ = port.partition("#")
-        if many:  # a list port: one value per connection, in edge order ("port#0", "port#1", ...)
-            inputs.setdefault(name, []).append(value)
+        if slot.index is not None:  # a list port: one value per connection, in edge order
+            inputs.setdefault(slot.port, []).append(value)
         else:
-            inputs[name] = value
+            inputs[slot.port] = value
     values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), progress_callback(spec.progress, spec.node, spec.out_frames),
                      seed=task_seed(spec.key), device=spec.device)
     return _trim(node, values, spec.frames, spec.out_frames)

@@ -15,6 +15,7 @@ from nodegraph import Graph, Node, NodeParams, Out, ParamSequence, run
 from nodegraph.cache import MARKER, Cache, NotACache
 from nodegraph.cli import main
 from nodegraph.errors import GraphError
+from nodegraph.plan_names import TaskName
 from nodegraph.schedule import plan_run
 
 from .helpers import chain
@@ -89,7 +90,7 @@ def test_temp_folders_of_dead_writers_are_counted_and_collected(cache_dir):
 @pytest.mark.parametrize("manifest", ["[]", "{}", '{"files": [], "ports": {}}', '"text"', '{"files": {"a": 1}, "ports": {}}'])
 def test_manifest_of_the_wrong_shape_counts_as_corrupt(cache_dir, manifest):
     first = run(chain(), chunk=10, scheduler="sync", cache=cache_dir)
-    key = plan_run(chain(), chunk=10).tasks["cum|0:40"].key
+    key = plan_run(chain(), chunk=10).tasks[TaskName("cum", (0, 40))].key
     (Cache(cache_dir).entry_dir(key) / "manifest.json").write_text(manifest)
     second = run(chain(), chunk=10, scheduler="sync", cache=cache_dir)
     assert second.executed("cum") == 1 and second.ok
@@ -98,7 +99,7 @@ def test_manifest_of_the_wrong_shape_counts_as_corrupt(cache_dir, manifest):
 
 def test_explain_reports_a_byte_flipped_entry_as_a_miss(graph_file, cache_dir, capsys):
     assert main(["run", str(graph_file), "--cache", str(cache_dir), "--chunk", "10", "--progress", "none"]) == 0
-    key = plan_run(Graph.load(graph_file), chunk=10).tasks["cum|0:20"].key
+    key = plan_run(Graph.load(graph_file), chunk=10).tasks[TaskName("cum", (0, 20))].key
     npz = Cache(cache_dir).entry_dir(key) / "total.npz"
     data = bytearray(npz.read_bytes())
     data[len(data) // 2] ^= 0xFF

@@ -12,6 +12,7 @@ import numpy as np
 
 from nodegraph import run
 from nodegraph.cache import Cache, make_key
+from nodegraph.plan_names import TaskName
 from nodegraph.schedule import plan_run
 
 from .helpers import chain
@@ -70,7 +71,7 @@ def test_widening_frame_range_runs_only_new_chunks(cache_dir):
 
 def test_truncated_entry_is_recomputed(cache_dir):
     first = run(chain(), chunk=CHUNK, scheduler="sync", cache=cache_dir)
-    key = plan_run(chain(), chunk=CHUNK).tasks["cum|0:40"].key
+    key = plan_run(chain(), chunk=CHUNK).tasks[TaskName("cum", (0, 40))].key
     npz = Cache(cache_dir).entry_dir(key) / "total.npz"
     npz.write_bytes(npz.read_bytes()[:40])
     second = run(chain(), chunk=CHUNK, scheduler="sync", cache=cache_dir)
@@ -80,7 +81,7 @@ def test_truncated_entry_is_recomputed(cache_dir):
 
 def test_corrupted_bytes_are_detected_not_returned(cache_dir):
     first = run(chain(), chunk=CHUNK, scheduler="sync", cache=cache_dir)
-    key = plan_run(chain(), chunk=CHUNK).tasks["cum|0:40"].key
+    key = plan_run(chain(), chunk=CHUNK).tasks[TaskName("cum", (0, 40))].key
     npz = Cache(cache_dir).entry_dir(key) / "total.npz"
     data = bytearray(npz.read_bytes())
     data[-30] ^= 0xFF  # same size, different content
@@ -92,7 +93,7 @@ def test_corrupted_bytes_are_detected_not_returned(cache_dir):
 
 def test_half_written_entry_is_invisible(cache_dir):
     store = Cache(cache_dir)
-    key = plan_run(chain(), chunk=CHUNK).tasks["cum|0:40"].key
+    key = plan_run(chain(), chunk=CHUNK).tasks[TaskName("cum", (0, 40))].key
     folder = store.entry_dir(key)
     folder.mkdir(parents=True)
     (folder / "total.npz").write_bytes(b"partial")  # a crash before the manifest
@@ -126,10 +127,10 @@ def test_two_processes_run_the_same_graph_at_once(cache_dir):
 
 
 def test_key_is_the_same_in_a_fresh_interpreter():
-    keys = {name: t.key for name, t in plan_run(chain(), chunk=CHUNK).tasks.items()}
+    keys = {str(name): t.key for name, t in plan_run(chain(), chunk=CHUNK).tasks.items()}
     script = ("import json, sys; sys.path.insert(0, %r); import nodegraph.testing\n"
               "from tests.nodegraph.helpers import chain\nfrom nodegraph.schedule import plan_run\n"
-              "print(json.dumps({n: t.key for n, t in plan_run(chain(), chunk=%d).tasks.items()}))"
+              "print(json.dumps({str(n): t.key for n, t in plan_run(chain(), chunk=%d).tasks.items()}))"
               % (str(Path(__file__).parents[2]), CHUNK))
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                          cwd="/", env={**os.environ, "PYTHONHASHSEED": "123"})

@@ -16,6 +16,7 @@ import pytest
 import nodegraph.tasks
 from nodegraph import Graph, run
 from nodegraph.cache import Cache
+from nodegraph.plan_names import TaskName
 from nodegraph.schedule import plan_run
 
 from .helpers import chain
@@ -58,6 +59,7 @@ _PROBE = textwrap.dedent('''
     import nodegraph.testing
     from nodegraph import Graph, run
     from nodegraph.runner import explain
+    from nodegraph.plan_names import TaskName
     pkg = sys.argv[2]
     __import__(pkg)
     g = Graph()
@@ -70,7 +72,7 @@ _PROBE = textwrap.dedent('''
     else:
         result = run(g, chunk=10, scheduler="sync", cache=sys.argv[3])
         from nodegraph import registry
-        print(json.dumps({"key": result.plan.tasks["double|0:10"].key,
+        print(json.dumps({"key": result.plan.tasks[TaskName("double", (0, 10))].key,
                           "value": float(result.outputs["double"]["doubled"].values[3, 0]),
                           "sources": sorted(registry.get(pkg + ".Double").code_sources())}))
 ''')
@@ -215,7 +217,7 @@ def test_numbered_mesh_files_key_per_chunk(tmp_path):
     before = {n: t.key for n, t in plan_run(g, chunk=4).tasks.items()}
     save_mesh_sequence(pattern, MeshSequence(verts[9:10] + 1, mesh.faces), range(9, 10))
     after = {n: t.key for n, t in plan_run(g, chunk=4).tasks.items()}
-    assert [n for n in before if before[n] != after[n]] == ["load|8:12"]
+    assert [n for n in before if before[n] != after[n]] == [TaskName("load", (8, 12))]
 
 
 # -- 4. list ports, seeds, devices, per-node chunk -----------------------------------------

@@ -13,6 +13,7 @@ import pytest
 
 from nodegraph import Graph, MeshSequence, ParamSequence, run
 from nodegraph.cache import Cache
+from nodegraph.plan_names import TaskName
 from nodegraph.tasks import TaskResult, _CombinedInputs
 
 
@@ -46,7 +47,8 @@ def test_whole_sequence_readers_share_one_join_of_the_same_chunks(scheduler, mon
 
 
 def _result(name: str, values: np.ndarray) -> TaskResult:
-    return TaskResult(name, "n", (0, len(values)), "executed", {"v": ParamSequence(values, ["a"])})
+    return TaskResult(TaskName(name, (0, len(values))), name, (0, len(values)), "executed",
+                      {"v": ParamSequence(values, ["a"])})
 
 
 def test_a_shared_join_is_valid_only_for_the_very_same_upstream_results():

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from nodegraph import run
+from nodegraph.plan_names import PortSlot, TaskName
 from nodegraph.schedule import chunk_bounds, parse_frames, plan_run
 
 from .helpers import chain
@@ -46,11 +47,11 @@ def test_chunked_equals_unchunked_framewise_and_windowed(chunk):
 
 def test_windowed_tasks_get_halo_and_trim():
     plan = plan_run(chain(), chunk=10)
-    task = plan.tasks["avg|10:20"]
+    task = plan.tasks[TaskName("avg", (10, 20))]
     assert task.frames == (7, 23) and task.out_frames == (10, 20)
-    assert plan.tasks["avg|0:10"].frames == (0, 13)
-    assert plan.tasks["avg|30:40"].frames == (27, 40)
-    assert [p.task for p in task.inputs["values"]] == ["scale|0:10", "scale|10:20", "scale|20:30"]
+    assert plan.tasks[TaskName("avg", (0, 10))].frames == (0, 13)
+    assert plan.tasks[TaskName("avg", (30, 40))].frames == (27, 40)
+    assert [p.task for p in task.inputs[PortSlot("values")]] == [TaskName("scale", (s, s + 10)) for s in (0, 10, 20)]
 
 
 def test_sub_range_of_frames():
