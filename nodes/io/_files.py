@@ -28,7 +28,7 @@ from nodegraph.files import atomic_path, files_value  # noqa: F401  (still impor
 
 __all__ = [
     "FrameToken", "frame_token", "is_frame_pattern", "expand_frame_pattern", "find_frame_numbers",
-    "pattern_files", "frame_where", "check_frame_range", "format_of",
+    "pattern_files", "frame_where", "check_frame_range", "check_no_missing_files", "format_of",
     "npz_keys", "npz_shape", "read_npz_rows", "read_npz_array",
 ]
 
@@ -141,6 +141,43 @@ def check_frame_range(frames: range, count: int, path: str) -> None:
         bad = frames.start if frames.start < 0 else frames[-1]
         raise InputError("path", f"frame {bad} (file '{path}'): expected a frame in 0..{count - 1}, "
                                  f"the file has {count} frame(s)")
+
+
+def check_no_missing_files(pattern: str, frames: range, first: int, numbers: list[int]) -> None:
+    """Raise InputError (param "path") when a run frame of `frames` has no file in `pattern`.
+
+    Run frame f is file number `first + f`; `numbers` are the pattern's existing numbers
+    (`find_frame_numbers`). Called while planning (a source's `input_files`), so a gap in a
+    numbered sequence is one error before anything runs, naming every missing number of the
+    pattern between `first` and its last file, not a failure in whichever chunk reaches it.
+    Frames past the last file are left to the frame-count check (`--frames` past a source's end).
+
+    Example:
+        >>> check_no_missing_files("p.%04d.png", range(0, 3), 0, [0, 1, 2, 4])
+        >>> check_no_missing_files("p.%04d.png", range(0, 5), 0, [0, 1, 2, 4])
+        Traceback (most recent call last):
+        ...
+        nodegraph.errors.InputError: 'path': 'p.%04d.png': expected a file for every frame of the run, found frame 3 missing (file 'p.0003.png'); the pattern's files 0..4 lack number 3 (1 of 5)
+    """
+    if not numbers:
+        return
+    present = set(numbers)
+    missing = [f for f in frames if first + f <= numbers[-1] and first + f not in present]
+    if not missing:
+        return
+    lo, hi = min(numbers[0], first), numbers[-1]
+    gaps = [n for n in range(lo, hi + 1) if n not in present]
+
+    def listed(values: list[int]) -> str:
+        shown = ", ".join(str(v) for v in values[:20])
+        return shown + (f", ... ({len(values)} in all)" if len(values) > 20 else "")
+
+    raise InputError("path", f"'{pattern}': expected a file for every frame of the run, found "
+                             f"frame{'s' if len(missing) > 1 else ''} {listed(missing)} missing (file "
+                             f"'{expand_frame_pattern(pattern, first + missing[0])}'"
+                             f"{' and others' if len(missing) > 1 else ''}); the pattern's files {lo}..{hi} "
+                             f"lack number{'s' if len(gaps) > 1 else ''} {listed(gaps)} "
+                             f"({len(gaps)} of {hi - lo + 1})")
 
 
 def format_of(path: str, formats: Mapping[str, str], param: str = "path") -> str:

@@ -26,8 +26,8 @@ import numpy as np
 
 from nodegraph import FRAMEWISE, Files, ImageSequence, In, InputError, Node, NodeParams, Out, Param
 
-from ._files import (atomic_path, expand_frame_pattern, files_value, find_frame_numbers, format_of,
-                     frame_token, frame_where, pattern_files)
+from ._files import (atomic_path, check_no_missing_files, expand_frame_pattern, files_value, find_frame_numbers,
+                     format_of, frame_token, frame_where, pattern_files)
 
 __all__ = ["IMAGE_WRITE_FORMATS", "read_image", "write_image", "image_frame_count",
            "image_frame_files", "load_image_sequence", "save_image_sequence", "LoadImageSequence",
@@ -190,6 +190,10 @@ def image_frame_files(path: str, frames: range | None = None,
 
     Run frame f is file number first_frame + f (first_frame None = the lowest number found);
     a single image file is frame 0.
+
+    Raises:
+        InputError: (param "path") when a frame of `frames` has no file: a gap in the numbers
+            (`check_no_missing_files`), found while planning, before anything runs.
     """
     if _single_file(path):
         return [Path(path)] if frames is None or 0 in frames else []
@@ -199,7 +203,8 @@ def image_frame_files(path: str, frames: range | None = None,
     first = first_frame if first_frame is not None else (numbers[0] if numbers else None)
     if first is None:
         return []
-    present = set(numbers)
+    check_no_missing_files(path, frames, first, numbers)
+    present = set(numbers)  # frames past the last file: none (the frame-count check refuses them)
     return [Path(expand_frame_pattern(path, first + f)) for f in frames if first + f in present]
 
 

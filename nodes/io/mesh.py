@@ -35,8 +35,8 @@ from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, MeshSequence,
 
 from nodegraph.files import atomic_path, files_value
 
-from ._files import (check_frame_range, expand_frame_pattern, find_frame_numbers, format_of, frame_token,
-                     frame_where, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
+from ._files import (check_frame_range, check_no_missing_files, expand_frame_pattern, find_frame_numbers, format_of,
+                     frame_token, frame_where, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
 from .mesh_frame import MeshFrame, check_frame, check_magnitude, check_mesh_file, fan_triangulate
 from .usd import load_usd_mesh, save_usd_mesh, usd_mesh_frame_count
 
@@ -371,8 +371,8 @@ def _save_npz(path: str, mesh: MeshSequence, compress: bool) -> None:
 def mesh_frame_count(path: str, *, prim: str = "", first_frame: int | None = None) -> int:
     """Return how many frames `path` holds (0 when a pattern matches no file).
 
-    For numbered files: highest number found - first number + 1 (gaps are reported as
-    missing frames when read).
+    For numbered files: highest number found - first number + 1 (a gap is refused while
+    planning, by `LoadMeshSequence.input_files`).
     """
     fmt = format_of(path, MESH_FORMATS)
     if frame_token(path) is not None:
@@ -526,11 +526,12 @@ class LoadMeshSequence(Node):
         p = self.params
         if frames is None or frame_token(p.path) is None:
             return pattern_files(p.path)
-        if not hasattr(self, "_first_number"):
-            self._first_number = _resolve_first(p.path, p.first_frame)[0]
-        first = self._first_number
+        if not hasattr(self, "_pattern_numbers"):  # one folder listing per plan
+            self._pattern_numbers = _resolve_first(p.path, p.first_frame)
+        first, numbers = self._pattern_numbers
         if first is None:
             return []
+        check_no_missing_files(p.path, frames, first, numbers)  # a gap: one error while planning
         files = [Path(expand_frame_pattern(p.path, n)) for n in sorted({first} | {first + f for f in frames})]
         return [f for f in files if f.is_file()]
 
