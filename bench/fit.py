@@ -8,16 +8,20 @@ Runs on the CPU (this machine has no GPU); torch threads as torch chooses.
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
 from nodegraph import Camera, ImageSequence, run_node
 from nodes.fit import EstimateAppearance, EstimateIdentity, Expression, RigidPose
-from nodes.fit.synthetic import random_face_parameters, render_plates
 from nodes.io.face_model import load_face_model
 from nodes.landmarks import DetectFaces, FaceLandmarks
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.support
+from tests.support.synthetic import random_face_parameters, render_truth_plates  # noqa: E402
 
 
 def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -57,7 +61,7 @@ def main() -> None:
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
     truth = random_face_parameters(model, args.frames, seed=args.seed, distance_cm=65.0)
-    plates = render_plates(model, [cam], truth, noise=args.noise)[0]
+    plates = render_truth_plates(model, [cam], truth, noise=args.noise)[0]
     seq = ImageSequence(plates, colour_space="linear")
     f = args.frames
     times = {}

@@ -30,10 +30,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 from _timing import median_ms
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.support
 
 RENDER_TOL = 1e-4      # max |image difference|, linear colour
 GRAD_TOL = 1e-3        # relative difference of the vertex gradient (norm of difference / norm)
@@ -53,11 +56,11 @@ def _sync() -> None:
 def bench_render(device: str, repeat: int) -> list[tuple[str, float, float, str]]:
     """(row, ms on CPU, ms on `device`, agreement text) for the render at 256^2."""
     from nodes.io.face_model import load_face_model
-    from nodes.render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, hidden_faces
+    from nodes.render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, visible_faces
     from nodes.render.renderer import render_mesh, triangle_adjacency
 
     model = load_face_model()
-    faces = np.delete(model.faces, hidden_faces(model.faces), axis=0)
+    faces = visible_faces(model.faces, model.neutral.shape[0])
     adjacency = triangle_adjacency(faces)
     extrinsics = np.array([[1.0, 0, 0, 0], [0, -1, 0, 1.0], [0, 0, -1, 55.0], [0, 0, 0, 1]])
     albedo, sh = default_albedo(model), default_sh()
@@ -121,7 +124,7 @@ def bench_fit(device: str, frames: int) -> list[tuple[str, float, float, str]]:
     from nodegraph import Camera, ImageSequence
     from nodegraph.node import execute
     from nodes.fit import EstimateIdentity, Expression, RigidPose
-    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from tests.support.synthetic import random_face_parameters, render_truth_plates
     from nodes.geometry.rotation import rotmat_to_axis_angle
     from nodes.io.face_model import load_face_model
     from nodes.landmarks import DetectFaces, FaceLandmarks
@@ -129,7 +132,7 @@ def bench_fit(device: str, frames: int) -> list[tuple[str, float, float, str]]:
     model = load_face_model()
     cam = Camera.from_fov(256, 256, 30.0)
     truth = random_face_parameters(model, frames, seed=0, distance_cm=65.0)
-    seq = ImageSequence(render_plates(model, [cam], truth)[0], colour_space="linear")
+    seq = ImageSequence(render_truth_plates(model, [cam], truth)[0], colour_space="linear")
     span = range(frames)
 
     def node_run(node_type, params, device_name, **inputs):

@@ -26,11 +26,14 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.support
 
 
 def curve_rows() -> list[str]:
@@ -65,7 +68,7 @@ def curve_rows() -> list[str]:
 
 
 def known_shot_rows(seeds: int = 5, frames: int = 90) -> list[str]:
-    """A head performance with known truth (`nodes.temporal.synthetic.head_motion`, a jaw snap
+    """A head performance with known truth (`tests.support.synthetic.head_motion`, a jaw snap
     0 -> 0.7 -> 0 over frames 40-46, blinks 0.05 -> 0.95 over frames 20-23 and 65-68) under
     white noise like a per-frame fit's (rotation 0.01 rad, translation 0.15 cm, weights 0.03),
     through the nodes temporal.Average and temporal.AdaptiveSmooth: error to the truth, roughness
@@ -73,7 +76,7 @@ def known_shot_rows(seeds: int = 5, frames: int = 90) -> list[str]:
     from nodegraph import ParamSequence, run_node
     from nodes.temporal import AdaptiveSmooth, Average
     from nodes.temporal.layout import RIGID_NAMES
-    from nodes.temporal.synthetic import head_motion
+    from tests.support.synthetic import head_motion
 
     names = ["jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "eyeBlinkRight"]
     jaw, blinks = 6, [8, 9]

@@ -2,7 +2,7 @@
 
 Run: nice python bench/temporal.py [--size 256] [--pairs 4] [--threads 2] [--frames 9]
 
-1. Flow on pairs of renders of the bundled head under known motion (two amplitudes) (`nodes.temporal.synthetic`,
+1. Flow on pairs of renders of the bundled head under known motion (two amplitudes) (`tests.support.synthetic`,
    textured skin, grey background; the truth is the geometric render flow): mean end-point
    error over the face (px) and ms per pair, ours (the differentiable torch `dense_flow` and
    its compiled forward pass `dense_flow_numpy`, which `flow.OpticalFlow` runs on the CPU)
@@ -22,12 +22,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import torch
 from _timing import median_ms
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.support
 
 
 @contextlib.contextmanager
@@ -51,7 +55,7 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
     from nodes.flow.dense import FlowSettings, dense_flow, endpoint_error
     from nodes.flow.fast import dense_flow_numpy
     from nodes.flow.geometric import render_flow
-    from nodes.temporal.synthetic import head_motion, make_scene, render_plates, scene_vertices
+    from tests.support.synthetic import head_motion, make_scene, render_scene_plates, scene_vertices
 
     scene = make_scene(size)
     cam = scene.camera
@@ -65,7 +69,7 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
     for pair in range(2 * pairs):
         seed, amplitude = pair % pairs, 1.0 + pair // pairs  # amplitude 2: ~6 px mean motion at 256^2
         values = head_motion(2, scene.model.expression_names, seed=10 + seed, amplitude=amplitude, mouth_frames=(0, 2))
-        plates = render_plates(scene, values)
+        plates = render_scene_plates(scene, values)
         verts = scene_vertices(scene, values)
         truth, mask = render_flow(verts[:1], verts[1:], torch.as_tensor(scene.faces), e, k, cam.height, cam.width)
         img = torch.as_tensor(plates.pixels).permute(0, 3, 1, 2)
@@ -112,7 +116,7 @@ def temporal_rows(frames: int) -> tuple[list, list]:
     from nodes.flow.geometric import render_flow
     from nodes.temporal import Average, FlowInfill, Hybrid, PlateFlow, SelfFlow
     from nodes.temporal.layout import RIGID_NAMES
-    from nodes.temporal.synthetic import head_motion, make_scene, render_plates, scene_vertices
+    from tests.support.synthetic import head_motion, make_scene, render_scene_plates, scene_vertices
 
     size = 64
     scene = make_scene(size)
@@ -126,7 +130,7 @@ def temporal_rows(frames: int) -> tuple[list, list]:
     exact = np.zeros((frames, size, size, 2), np.float32)
     exact[:-1] = flow.permute(0, 2, 3, 1).numpy()
     flows = {"geometric": FlowSequence(exact, np.r_[np.ones(frames - 1, bool), False]),
-             "optical": run_node(OpticalFlow, images=render_plates(scene, truth))["flow"]}
+             "optical": run_node(OpticalFlow, images=render_scene_plates(scene, truth))["flow"]}
 
     def seq(values):
         return ParamSequence(np.asarray(values, np.float32), list(RIGID_NAMES) + list(names))

@@ -63,3 +63,21 @@ def test_areas_import_only_along_the_layers():
 def test_the_layer_test_sees_imports():
     found = {t for p in NODES.glob("fit/*.py") for t, _ in _imports(p)}
     assert {"render", "landmarks", "geometry"} <= found
+
+
+def test_the_library_does_not_import_the_test_support():
+    """Helpers that only tests and benches use live in tests/support (`tests.support.synthetic`);
+    nodes/ and nodegraph/ never import the tests package."""
+    problems = []
+    for root in (NODES, NODES.parent / "nodegraph"):
+        for path in sorted(root.rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Import):
+                    modules = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    modules = [node.module]
+                else:
+                    continue
+                problems += [f"{path.relative_to(NODES.parent)} imports {m}" for m in modules
+                             if m.split(".")[0] == "tests"]
+    assert problems == []

@@ -1,7 +1,7 @@
 """Deep-energy pose and expression fitting (paper 2, PAPERS.md §2): energies (`energy.py`),
 renders read by the landmark network and their anchors (`views.py`), the staged solver
-(`solve.py`), appearance (`appearance.py`) and identity (`identity.py`) estimation,
-synthetic plates (`synthetic.py`), and the nodes: the node inputs as solver tensors
+(`solve.py`), appearance (`appearance.py`) and identity (`identity.py`) estimation, and
+the nodes: the node inputs as solver tensors
 (`node_inputs.py`), frame selection (`frame_selection.py`), tuning constants and the
 measurements behind them (`tuning.py`), the per-shot camera, appearance and identity
 (`estimation_nodes.py`), the per-frame rigid and expression stages (`pose_nodes.py`), failure

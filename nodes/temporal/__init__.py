@@ -1,7 +1,7 @@
 """Temporal refinement of fitted parameters: parameter layout (`layout.py`), three-frame averaging
 (`averaging.py`), per-frame plate/self-flow solves (`flowfit.py`), infill and smoothing sweeps
-(`sweeps.py`), synthetic plates for tests and benches (`synthetic.py`), the nodes (`nodes.py`) and
-the motion report (`report.py`).
+(`sweeps.py`), the nodes (`nodes.py`) and the motion report (`report.py`). (The synthetic plates
+of its tests and benches are in `tests/support/synthetic.py`.)
 
 Importing the package registers the nodes only; torch is imported when a node runs.
 """

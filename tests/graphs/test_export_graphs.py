@@ -42,7 +42,7 @@ def animation(tmp_path_factory):
     from scipy.spatial.transform import Rotation
 
     from nodegraph import Camera
-    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from tests.support.synthetic import random_face_parameters, render_truth_plates
     from nodes.io.face_model import load_face_model
     from nodes.io.image import write_image
 
@@ -56,7 +56,7 @@ def animation(tmp_path_factory):
     truth["translation"] = np.stack([0 * t, 0 * t, 65.0 + 0 * t], 1)
     truth["weights"] = np.zeros((FRAMES, len(model.expression_names)), np.float32)
     truth["weights"][:, model.expression_names.index("jawOpen")] = 0.1 + 0.05 * np.sin(t)
-    for i, frame in enumerate(render_plates(model, [cam], truth)[0]):
+    for i, frame in enumerate(render_truth_plates(model, [cam], truth)[0]):
         write_image(tmp / f"plate.{i:04d}.png", np.clip(frame, 0, 1) ** (1 / 2.2), ["R", "G", "B"], "uint8")
     params = {"images": str(tmp / "plate.%04d.png"), "output": str(tmp / "fit.npz"), "report": str(tmp / "fit"),
               "motion_report": str(tmp / "motion"), "csv": str(tmp / "take.csv"), "usd": str(tmp / "head.usdc"),

@@ -39,7 +39,7 @@ def test_fit_video_temporal_graph_on_a_smooth_synthetic_shot(tmp_path):
     from scipy.spatial.transform import Rotation
 
     from nodegraph import Camera
-    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from tests.support.synthetic import random_face_parameters, render_truth_plates
     from nodes.io.face_model import load_face_model
     from nodes.io.image import write_image
 
@@ -54,7 +54,7 @@ def test_fit_video_temporal_graph_on_a_smooth_synthetic_shot(tmp_path):
     jaw = model.expression_names.index("jawOpen")
     truth["weights"] = np.zeros((FRAMES, len(model.expression_names)), np.float32)
     truth["weights"][:, jaw] = 0.1 + 0.05 * np.sin(t / 3.0)
-    plates = render_plates(model, [cam], truth)[0]
+    plates = render_truth_plates(model, [cam], truth)[0]
     for i, frame in enumerate(plates):
         write_image(tmp_path / f"plate.{i:04d}.png", np.clip(frame, 0, 1) ** (1 / 2.2), ["R", "G", "B"], "uint8")
     out, report, motion = tmp_path / "fit.npz", tmp_path / "overlays", tmp_path / "motion"

@@ -13,7 +13,7 @@ pytest.importorskip("tflite")
 
 from nodegraph import Camera, ImageSequence, run_node  # noqa: E402
 from nodes.fit import EstimateAppearance, EstimateIdentity, Expression, FlagFailures, RigidPose  # noqa: E402
-from nodes.fit.synthetic import orbit_camera, random_face_parameters, render_plates  # noqa: E402
+from tests.support.synthetic import orbit_camera, random_face_parameters, render_truth_plates  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
 from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
 
@@ -40,7 +40,7 @@ def scene():
     cam0 = Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")
     cam1 = orbit_camera(cam0, 35.0, [0.0, 0.0, DISTANCE], name="cam1")
     truth = random_face_parameters(model, FRAMES, seed=3, distance_cm=DISTANCE)
-    plates = render_plates(model, [cam0, cam1], truth)
+    plates = render_truth_plates(model, [cam0, cam1], truth)
     views = [_marks(p) for p in plates]
     return model, [cam0, cam1], truth, views
 
@@ -199,7 +199,7 @@ def test_photometric_term_recovers_the_rotation_with_the_true_identity(tmp_path)
     cams = [Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")]
     frames = 8
     truth = random_face_parameters(model, frames, seed=0, distance_cm=DISTANCE)
-    seq, boxes, marks = _marks(render_plates(model, cams, truth)[0])
+    seq, boxes, marks = _marks(render_truth_plates(model, cams, truth)[0])
     np.savez(tmp_path / "identity.npz", identity=truth["identity"])
     fitted = run_node(EstimateIdentity, {"mode": "file", "path": str(tmp_path / "identity.npz")}, frames=range(frames),
                       landmarks=[marks], boxes=[boxes], cameras=cams[:1], model=model)["fitted_model"]
@@ -238,7 +238,7 @@ def test_on_a_noisy_plate_the_appearance_paints_several_frames(tmp_path):
     cams = [Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")]
     frames = 8
     truth = random_face_parameters(model, frames, seed=0, distance_cm=DISTANCE)
-    seq, boxes, marks = _marks(render_plates(model, cams, truth, noise=0.03)[0])
+    seq, boxes, marks = _marks(render_truth_plates(model, cams, truth, noise=0.03)[0])
     np.savez(tmp_path / "identity.npz", identity=truth["identity"])
     fitted = run_node(EstimateIdentity, {"mode": "file", "path": str(tmp_path / "identity.npz")}, frames=range(frames),
                       landmarks=[marks], boxes=[boxes], cameras=cams[:1], model=model)["fitted_model"]

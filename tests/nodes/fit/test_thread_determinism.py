@@ -26,7 +26,7 @@ pytest.importorskip("tflite")
 
 from nodegraph import Camera, ImageSequence, run_node  # noqa: E402
 from nodes.fit import EstimateIdentity, Expression, RigidPose  # noqa: E402
-from nodes.fit.synthetic import random_face_parameters, render_plates  # noqa: E402
+from tests.support.synthetic import random_face_parameters, render_truth_plates  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
 from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
 
@@ -63,7 +63,7 @@ def test_one_two_and_four_threads_give_the_same_fit():
     model = load_face_model()
     cam = Camera.from_fov(SIZE, SIZE, 30.0)
     truth = random_face_parameters(model, FRAMES, seed=11, distance_cm=65.0)
-    seq = ImageSequence(render_plates(model, [cam], truth)[0], colour_space="linear")
+    seq = ImageSequence(render_truth_plates(model, [cam], truth)[0], colour_space="linear")
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     marks = run_node(FaceLandmarks, images=seq, boxes=boxes)
     fits = {n: _fit(model, cam, seq, boxes, marks, n) for n in (1, 2, 4)}

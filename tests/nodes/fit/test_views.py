@@ -15,14 +15,14 @@ from nodes.fit.appearance import estimate_noise  # noqa: E402
 from nodes.fit.views import FitModel, FitViews, crop_intrinsics, render_crops  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
 from nodes.landmarks.network import crop_and_resize  # noqa: E402
-from nodes.render.appearance import default_albedo, default_sh, hidden_faces  # noqa: E402
+from nodes.render.appearance import default_albedo, default_sh, visible_faces  # noqa: E402
 from nodes.render.renderer import render_mesh  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def model():
     face = load_face_model()
-    faces = np.delete(np.asarray(face.faces), hidden_faces(face.faces), axis=0)
+    faces = visible_faces(face.faces, face.neutral.shape[0])
     return FitModel.build(face.neutral, face.expression_deltas, face.expression_names, faces, face.landmarks,
                           default_albedo(face), default_sh(), np.array([0.2, 0.25, 0.3]))
 
@@ -98,13 +98,13 @@ def test_identity_from_the_468_face_mesh_points():
     pytest.importorskip("tflite")
     from nodegraph import ImageSequence, Landmarks2D, NodeError, run_node
     from nodes.fit import EstimateIdentity
-    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from tests.support.synthetic import random_face_parameters, render_truth_plates
     from nodes.landmarks import DetectFaces, FaceLandmarks
 
     face = load_face_model()
     cam = Camera.from_fov(256, 256, 30.0)
     truth = random_face_parameters(face, 2, seed=5, distance_cm=65.0)
-    seq = ImageSequence(render_plates(face, [cam], truth)[0], colour_space="linear")
+    seq = ImageSequence(render_truth_plates(face, [cam], truth)[0], colour_space="linear")
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     marks = run_node(FaceLandmarks, images=seq, boxes=boxes)
     where = dict(frames=range(2), boxes=[boxes], cameras=[cam], model=face)
@@ -135,13 +135,13 @@ def test_default_appearance_carries_the_plates_noise_when_asked():
     pytest.importorskip("tflite")
     from nodegraph import ImageSequence, NodeError, run_node
     from nodes.fit import EstimateAppearance
-    from nodes.fit.synthetic import random_face_parameters, render_plates
+    from tests.support.synthetic import random_face_parameters, render_truth_plates
     from nodes.landmarks import DetectFaces, FaceLandmarks
 
     face = load_face_model()
     cam = Camera.from_fov(256, 256, 30.0)
     truth = random_face_parameters(face, 2, seed=5, distance_cm=65.0)
-    seq = ImageSequence(render_plates(face, [cam], truth, noise=0.03)[0], colour_space="linear")
+    seq = ImageSequence(render_truth_plates(face, [cam], truth, noise=0.03)[0], colour_space="linear")
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     marks = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"]
     where = dict(images=seq, landmarks=marks, boxes=boxes, camera=cam, model=face)
@@ -157,7 +157,7 @@ def test_view_spread_counts_the_frames_turns_and_the_cameras():
     from scipy.spatial.transform import Rotation
 
     from nodes.fit.frame_selection import view_spread_deg
-    from nodes.fit.synthetic import orbit_camera
+    from tests.support.synthetic import orbit_camera
 
     cam0 = Camera.from_fov(256, 256, 30.0)
     cam1 = orbit_camera(cam0, 35.0, [0.0, 0.0, 65.0])

@@ -14,14 +14,14 @@ from nodegraph import ImageSequence, run_node  # noqa: E402
 from nodes.flow import OpticalFlow  # noqa: E402
 from nodes.flow.dense import FlowSettings, dense_flow  # noqa: E402
 from nodes.flow.fast import dense_flow_numpy  # noqa: E402
-from nodes.temporal.synthetic import head_motion, make_scene, render_plates  # noqa: E402
+from tests.support.synthetic import head_motion, make_scene, render_scene_plates  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def pair():
     scene = make_scene(80)
     values = head_motion(2, scene.model.expression_names, seed=3, amplitude=2.0, mouth_frames=(0, 2))
-    return torch.as_tensor(render_plates(scene, values).pixels).permute(0, 3, 1, 2)
+    return torch.as_tensor(render_scene_plates(scene, values).pixels).permute(0, 3, 1, 2)
 
 
 @pytest.mark.parametrize("settings", [FlowSettings(), FlowSettings(skip_levels=1),

@@ -13,7 +13,7 @@ from nodegraph import ImageSequence, run_node  # noqa: E402
 from nodes.flow import OpticalFlow  # noqa: E402
 from nodes.flow.dense import FlowSettings, dense_flow, endpoint_error  # noqa: E402
 from nodes.flow.geometric import render_flow  # noqa: E402
-from nodes.temporal.synthetic import head_motion, make_scene, render_plates, scene_vertices  # noqa: E402
+from tests.support.synthetic import head_motion, make_scene, render_scene_plates, scene_vertices  # noqa: E402
 
 
 def _texture(size: int, shift: tuple[float, float], seed: int = 0) -> np.ndarray:
@@ -58,7 +58,7 @@ def test_dense_flow_recovers_a_translated_texture():
 def face_pair():
     scene = make_scene(80)
     values = head_motion(2, scene.model.expression_names, seed=3, mouth_frames=(0, 2))
-    plates = render_plates(scene, values)
+    plates = render_scene_plates(scene, values)
     verts = scene_vertices(scene, values)
     cam = scene.camera
     e = torch.as_tensor(cam.world_to_camera, dtype=torch.float32)[None]

@@ -127,7 +127,7 @@ def test_adaptive_smooth_node_keeps_blinks_and_beats_averaging_on_a_known_head_p
     from nodegraph import ParamSequence, run_node
     from nodes.temporal import AdaptiveSmooth, Average
     from nodes.temporal.layout import RIGID_NAMES
-    from nodes.temporal.synthetic import head_motion
+    from tests.support.synthetic import head_motion
 
     names = ["jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "eyeBlinkRight"]
     frames, errors, depths = 90, {"average": [], "adaptive": []}, []

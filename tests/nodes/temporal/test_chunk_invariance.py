@@ -16,7 +16,7 @@ from nodegraph import (FRAMEWISE, SEQUENCE, Camera, FaceModel, FlowSequence, Gra
                        Out, ParamSequence, run)
 from nodes.flow.geometric import render_flow  # noqa: E402
 from nodes.temporal.layout import RIGID_NAMES  # noqa: E402
-from nodes.temporal.synthetic import head_motion, make_scene, scene_vertices  # noqa: E402
+from tests.support.synthetic import head_motion, make_scene, scene_vertices  # noqa: E402
 
 SIZE, FRAMES = 48, 10
 

@@ -17,7 +17,7 @@ from nodes.temporal.averaging import average_params  # noqa: E402
 from nodes.geometry.rotation import axis_angle_to_quat, quat_mean, quat_to_axis_angle  # noqa: E402
 from nodes.temporal.layout import RIGID_NAMES  # noqa: E402
 from nodes.flow import OpticalFlow  # noqa: E402
-from nodes.temporal.synthetic import head_motion, make_scene, render_plates, scene_vertices  # noqa: E402
+from tests.support.synthetic import head_motion, make_scene, render_scene_plates, scene_vertices  # noqa: E402
 
 SIZE = 64
 
@@ -37,7 +37,7 @@ def shot(request):
         flows[:8] = flow.permute(0, 2, 3, 1).numpy()
         plate_flow = FlowSequence(flows, np.r_[np.ones(8, bool), False])
     else:  # optical flow of rendered plates
-        plate_flow = run_node(OpticalFlow, images=render_plates(scene, truth))["flow"]
+        plate_flow = run_node(OpticalFlow, images=render_scene_plates(scene, truth))["flow"]
         plate_flow._kind = "optical"
     return scene, names, truth, plate_flow
 
@@ -143,7 +143,7 @@ def test_flow_infill_leaves_frames_without_a_face_failed():
     scene = make_scene(SIZE)
     names = scene.model.expression_names
     truth = head_motion(9, names, seed=2, mouth_frames=(1, 8))
-    plates = render_plates(scene, truth)
+    plates = render_scene_plates(scene, truth)
     pixels = plates.pixels.copy()
     pixels[4] = np.clip(pixels[4].mean() + 0.1 * np.random.default_rng(0).standard_normal(pixels[4].shape), 0, 1)
     flow = run_node(OpticalFlow, images=dataclasses.replace(plates, pixels=pixels))["flow"]
@@ -183,7 +183,7 @@ def test_flow_infill_with_the_optical_render_flow_follows_the_plates():
     scene = make_scene(48)
     names = scene.model.expression_names
     truth = head_motion(7, names, seed=2, mouth_frames=(1, 6), amplitude=2.0)
-    flow = run_node(OpticalFlow, images=render_plates(scene, truth))["flow"]
+    flow = run_node(OpticalFlow, images=render_scene_plates(scene, truth))["flow"]
     failed = np.zeros(7, bool)
     failed[2:5] = True
     app = JsonValue(appearance_json(scene.albedo, scene.sh, tuple(scene.background), None))
