@@ -25,14 +25,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry.image import gaussian_blur, image_to_crop, sample_bilinear
 from .energy import _skew, axis_angle_to_rotmat, project_views, project_views_jacobian
-from .views import FitModel, FitViews, _barycentrics, at_anchors, image_to_crop
+from .views import FitModel, FitViews, _barycentrics, at_anchors
 
-__all__ = ["PHOTO_UNIT", "PhotoSamples", "gaussian_blur", "sample_bilinear", "photometric_samples",
+__all__ = ["PHOTO_UNIT", "PhotoSamples", "photometric_samples",
            "photometric_residuals", "photometric_point_jacobian", "PhotoTerm"]
 
 PHOTO_UNIT = 0.01
@@ -60,59 +60,6 @@ class PhotoSamples(NamedTuple):
     size: int
     neutral: Tensor
     deltas: Tensor
-
-
-def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
-    """(N, H, W, 3) -> the same, blurred by a separable Gaussian of `sigma` pixels (edges replicated)."""
-    if sigma <= 0:
-        return images
-    radius = max(1, int(np.ceil(2.5 * sigma)))
-    x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-    g = torch.exp(-0.5 * (x / sigma) ** 2)
-    g = g / g.sum()
-    n, h, w, c = images.shape
-    t = images.permute(0, 3, 1, 2).reshape(n * c, 1, h, w)
-    t = torch.nn.functional.pad(t, (radius, radius, radius, radius), mode="replicate")
-    t = torch.nn.functional.conv2d(t, g.reshape(1, 1, 1, -1))
-    t = torch.nn.functional.conv2d(t, g.reshape(1, 1, -1, 1))
-    return t.reshape(n, c, h, w).permute(0, 2, 3, 1)
-
-
-def sample_bilinear(images: Tensor, xy: Tensor, *, gradient: bool = False) -> Tensor | tuple[Tensor, Tensor]:
-    """Bilinear samples of images at pixel coordinates (centres at integers), differentiable in xy.
-
-    Written with gathers (not `grid_sample`) so that forward-mode autodiff goes through it.
-
-    Args:
-        images: (N, H, W, C); xy: (N, L, 2) x, y pixel coordinates (clamped into the image).
-        gradient: also return the samples' derivative in x and y (0 where clamped).
-    Returns:
-        (N, L, C), and with `gradient` (N, L, C, 2) per pixel.
-    """
-    n, h, w, c = images.shape
-    x = xy[..., 0].clamp(0.0, w - 1.0)
-    y = xy[..., 1].clamp(0.0, h - 1.0)
-    x0 = torch.floor(x).clamp(0, w - 2) if w > 1 else torch.zeros_like(x)
-    y0 = torch.floor(y).clamp(0, h - 2) if h > 1 else torch.zeros_like(y)
-    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
-    xi, yi = x0.long(), y0.long()
-    flat = images.reshape(n, h * w, c)
-    dx, dy = int(w > 1), int(h > 1)
-
-    def at(yy: Tensor, xx: Tensor) -> Tensor:
-        return torch.gather(flat, 1, (yy * w + xx)[..., None].expand(*xx.shape, c))
-
-    c00, c01, c10, c11 = at(yi, xi), at(yi, xi + dx), at(yi + dy, xi), at(yi + dy, xi + dx)
-    top = c00 + (c01 - c00) * fx
-    bottom = c10 + (c11 - c10) * fx
-    value = top + (bottom - top) * fy
-    if not gradient:
-        return value
-    inside_x = ((xy[..., 0] >= 0) & (xy[..., 0] <= w - 1) & (w > 1)).to(images.dtype)[..., None]
-    inside_y = ((xy[..., 1] >= 0) & (xy[..., 1] <= h - 1) & (h > 1)).to(images.dtype)[..., None]
-    d_x = ((c01 - c00) * (1 - fy) + (c11 - c10) * fy) * inside_x
-    d_y = (bottom - top) * inside_y
-    return value, torch.stack([d_x, d_y], -1)
 
 
 def photometric_samples(model: FitModel, views: FitViews, image: Tensor, triangle: Tensor, pix: Tensor,

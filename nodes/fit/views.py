@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import project_points_torch
+from ..geometry.image import crop_intrinsics, crop_to_image, image_to_crop, sample_bilinear
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from ..landmarks.network import MESH_SIZE, srgb_encode
 from ..render.renderer import render_mesh, triangle_adjacency
@@ -134,33 +135,6 @@ def at_anchors(values: Tensor, vertices: Tensor, bary: Tensor) -> Tensor:
     return (values[:, vertices] * bary[None, ..., None]).sum(-2).permute(1, 2, 3, 0, 4)
 
 
-def crop_intrinsics(intrinsics: Tensor, boxes: Tensor, size: int) -> Tensor:
-    """Intrinsics of the S x S render of a crop box (see the module docstring).
-
-    Args:
-        intrinsics: (C, 4) fx fy cx cy of the plate, pixels.
-        boxes: (B, C, 4) x0 y0 x1 y1, pixels.
-        size: S.
-    Returns:
-        (B, C, 4) fx fy cx cy of the render, render pixels.
-    """
-    k = size / (boxes[..., 2] - boxes[..., 0]).clamp_min(1e-6)
-    fx, fy, cx, cy = intrinsics[None].expand(*boxes.shape[:2], 4).unbind(-1)
-    return torch.stack([fx * k, fy * k, (cx - boxes[..., 0]) * k - 0.5, (cy - boxes[..., 1]) * k - 0.5], -1)
-
-
-def crop_to_image(points: Tensor, boxes: Tensor, size: int) -> Tensor:
-    """(B, C, L, 2) render pixel coordinates -> image pixels, given (B, C, 4) boxes."""
-    k = ((boxes[..., 2] - boxes[..., 0]) / size)[..., None, None]
-    return boxes[..., None, :2] + (points + 0.5) * k
-
-
-def image_to_crop(points: Tensor, boxes: Tensor, size: int) -> Tensor:
-    """Inverse of `crop_to_image`."""
-    k = ((boxes[..., 2] - boxes[..., 0]) / size)[..., None, None]
-    return (points - boxes[..., None, :2]) / k - 0.5
-
-
 @lru_cache(maxsize=4)
 def _noise_pattern(side: int, device: str) -> Tensor:
     """(side, side, 3) standard normal noise, the same for every call (seed 0, tiled from 256^2)."""
@@ -247,10 +221,8 @@ def render_crops(model: FitModel, views: FitViews, vertices: Tensor, *, size: in
         image = (image + (model.noise / k)[:, None, None, None] * pattern).clamp(0.0, 1.0)
     image = image * (in_y[:, :, None] & in_x[:, None, :]).to(image.dtype)[..., None]
     xs, ys = coords[..., 0], coords[..., 1]  # (N, S) render-pixel coordinates of the crop's samples
-    grid = torch.stack(torch.broadcast_tensors((xs[:, None, :] + 0.5) / r * 2 - 1,
-                                               (ys[:, :, None] + 0.5) / r * 2 - 1), -1)
-    crop = torch.nn.functional.grid_sample(image.permute(0, 3, 1, 2), grid, mode="bilinear",
-                                           padding_mode="zeros", align_corners=False).permute(0, 2, 3, 1)
+    crop = sample_bilinear(image, torch.stack(torch.broadcast_tensors(xs[:, None, :], ys[:, :, None]), -1),
+                           padding="zeros", method="grid_sample")
     ix = xs.round().long().clamp(0, r - 1)
     iy = ys.round().long().clamp(0, r - 1)
     rows = torch.arange(n, device=k.device)[:, None, None]

@@ -34,6 +34,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..geometry.image import pyramid_down, resize_bilinear, sample_bilinear
+
 __all__ = ["FlowSettings", "dense_flow", "upsample_flow", "warp_image", "luminance", "endpoint_error"]
 
 
@@ -100,21 +102,10 @@ def warp_image(image: Tensor, flow: Tensor) -> tuple[Tensor, Tensor]:
     """
     _, _, h, w = image.shape
     pos = _base_grid(h, w, flow) + flow
-    gx = 2.0 * pos[:, 0] / max(w - 1, 1) - 1.0
-    gy = 2.0 * pos[:, 1] / max(h - 1, 1) - 1.0
-    warped = F.grid_sample(image, torch.stack([gx, gy], -1), mode="bilinear", padding_mode="border",
-                           align_corners=True)
+    warped = sample_bilinear(image.permute(0, 2, 3, 1), pos.permute(0, 2, 3, 1), padding="border",
+                             method="grid_sample")
     inside = ((pos[:, 0] >= 0) & (pos[:, 0] <= w - 1) & (pos[:, 1] >= 0) & (pos[:, 1] <= h - 1))
-    return warped, inside[:, None].to(image.dtype)
-
-
-def _blur_down(image: Tensor) -> Tensor:
-    k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=image.dtype, device=image.device) / 16.0
-    c = image.shape[1]
-    x = F.pad(image, (2, 2, 2, 2), mode="replicate")
-    x = F.conv2d(x, k.view(1, 1, 1, 5).expand(c, 1, 1, 5), groups=c)
-    x = F.conv2d(x, k.view(1, 1, 5, 1).expand(c, 1, 5, 1), groups=c)
-    return x[:, :, ::2, ::2]
+    return warped.permute(0, 3, 1, 2), inside[:, None].to(image.dtype)
 
 
 def _gradients(image: Tensor) -> tuple[Tensor, Tensor]:
@@ -200,8 +191,8 @@ def dense_flow(image1: Tensor, image2: Tensor, settings: FlowSettings = FlowSett
     i1, i2 = (i1 - mean) / scale * 0.25, (i2 - mean) / scale * 0.25
     pyr1, pyr2 = [i1], [i2]
     while len(pyr1) < s.levels and min(pyr1[-1].shape[-2:]) // 2 >= s.min_size:
-        pyr1.append(_blur_down(pyr1[-1]))
-        pyr2.append(_blur_down(pyr2[-1]))
+        pyr1.append(pyramid_down(pyr1[-1].permute(0, 2, 3, 1)).permute(0, 3, 1, 2))
+        pyr2.append(pyramid_down(pyr2[-1].permute(0, 2, 3, 1)).permute(0, 3, 1, 2))
     levels = len(pyr1)
     b = image1.shape[0]
     flow = None
@@ -214,7 +205,7 @@ def dense_flow(image1: Tensor, image2: Tensor, settings: FlowSettings = FlowSett
                 flow = a1.new_zeros(b, 2, h, w)
             else:
                 f = 2.0 ** -level
-                flow = F.interpolate(init, size=(h, w), mode="bilinear", align_corners=False) * f
+                flow = resize_bilinear(init.permute(0, 2, 3, 1), (h, w)).permute(0, 3, 1, 2) * f
         else:
             flow = upsample_flow(flow, (h, w))
         iters = _iterations_at(level, levels, s)
@@ -244,7 +235,7 @@ def upsample_flow(flow: Tensor, size: tuple[int, int]) -> Tensor:
     if flow.shape[-2:] == (h, w):
         return flow
     sy, sx = h / flow.shape[2], w / flow.shape[3]
-    flow = F.interpolate(flow, size=(h, w), mode="bilinear", align_corners=False)
+    flow = resize_bilinear(flow.permute(0, 2, 3, 1), (h, w)).permute(0, 3, 1, 2)
     return flow * torch.tensor([sx, sy], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
 
 

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .network import crop_and_resize, mediapipe_path
+from ..geometry.image import crop_and_resize
+from .network import mediapipe_path
 from .tflite_torch import TfliteModule, read_tflite
 from .tracking import EYE_CORNERS
 

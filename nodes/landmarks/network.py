@@ -10,9 +10,9 @@ A box is `(x0, y0, x1, y1)` in those coordinates, the crop covering `[x0, x1] x 
 (the whole image is `(-0.5, -0.5, W - 0.5, H - 0.5)`); crop pixel j's centre is at
 `x0 + (j + 1/2) (x1 - x0) / S`.
 
-- `crop_and_resize`: bilinear, differentiable in the pixels with the box held constant (the
-  paper's dD/dF = 0); for a shrink by k >= 2 the image is first averaged over k x k blocks
-  (no aliasing of fine detail).
+- `crop_and_resize` (`nodes.geometry.image`): bilinear, differentiable in the pixels with the
+  box held constant (the paper's dD/dF = 0); for a shrink by k >= 2 the image is first
+  averaged over k x k blocks (no aliasing of fine detail).
 - `detect_all_faces`: every face: the image letterboxed to a square (black bars) and resized
   to 128 x 128, BlazeFace's 896 SSD anchors decoded to boxes and 6 keypoints; for faces
   smaller than that pass sees (`min_face_px`), an image pyramid of finer levels run fully
@@ -41,13 +41,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..geometry.image import crop_and_resize, resize_bilinear
 from .correspondence import MEDIAPIPE_TO_68
 from .heatmap import LandmarkNetwork
 from .tflite_torch import TfliteModule, read_tflite
 from .tracking import FaceChoice, choose_face
 
 __all__ = ["FACE_LANDMARK_MODEL", "FACE_DETECTOR_MODEL", "mediapipe_path", "srgb_encode",
-           "crop_and_resize", "letterbox_box", "square_box", "ssd_anchors", "decode_detections",
+           "letterbox_box", "square_box", "ssd_anchors", "decode_detections",
            "weighted_nms", "Faces", "FaceDetections", "BlazeFace", "MediaPipeFaceMesh", "grid_anchors",
            "pyramid_scales", "detect_all_faces", "eye_roll", "detect_faces", "select_faces", "face_landmarks",
            "load_face_detector", "load_face_mesh", "DETECT_MIN_PX", "DEFAULT_MIN_FACE_PX", "points_roll",
@@ -88,68 +89,6 @@ def square_box(boxes: np.ndarray, scale: float = BOX_SCALE) -> np.ndarray:
     centre = (boxes[..., :2] + boxes[..., 2:]) / 2
     side = scale * np.maximum(boxes[..., 2] - boxes[..., 0], boxes[..., 3] - boxes[..., 1])
     return np.concatenate([centre - side[..., None] / 2, centre + side[..., None] / 2], -1)
-
-
-def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int,
-                    angles: Tensor | np.ndarray | None = None) -> Tensor:
-    """Crop each image to its box and resize to size x size, bilinearly (differentiable in pixels).
-
-    Args:
-        images: (B, H, W, C) float.
-        boxes: (B, 4) x0 y0 x1 y1, pixels (see the module docstring); held constant.
-        size: output side S, pixels.
-        angles: (B,) radians or None (0): the crop is the box turned by this angle about its
-            centre (x towards y, i.e. clockwise on screen): crop pixel offset d from the crop
-            centre samples the image at `centre + R(angle) d`, so a face rolled by `angle`
-            comes out upright.
-    Returns:
-        (B, S, S, C); samples outside the image are 0 (black).
-    """
-    if images.ndim != 4:
-        raise ValueError(f"images: expected shape (B, H, W, C), found {tuple(images.shape)}")
-    boxes = torch.as_tensor(np.asarray(boxes, np.float64) if not isinstance(boxes, Tensor) else boxes,
-                            dtype=images.dtype, device=images.device).reshape(-1, 4)
-    if len(boxes) != len(images):
-        raise ValueError(f"boxes: expected shape ({len(images)}, 4), found {tuple(boxes.shape)}")
-    if angles is not None:
-        angles = np.asarray(angles.detach().cpu() if isinstance(angles, Tensor) else angles, np.float64).reshape(-1)
-        if len(angles) != len(images):
-            raise ValueError(f"angles: expected shape ({len(images)},), found {angles.shape}")
-    out = []
-    x = images.permute(0, 3, 1, 2)
-    t = (torch.arange(size, device=images.device, dtype=images.dtype) + 0.5) / size
-    for b in range(len(images)):  # per image: each has its own box and shrink factor
-        x0, y0, x1, y1 = boxes[b].tolist()
-        img = x[b:b + 1]
-        k = int(min(x1 - x0, y1 - y0) / size)
-        offset, step = 0.0, 1.0
-        if k >= 2:  # box filter before the bilinear shrink; pooled pixel i covers k i .. k i + k - 1
-            # only the part of the image the crop samples (with a margin of 2 pooled pixels), cut
-            # at multiples of k so that the blocks are those of pooling the whole image
-            c = float(np.cos(angles[b])) if angles is not None else 1.0
-            s = float(np.sin(angles[b])) if angles is not None else 0.0
-            reach_x = (abs(c) * (x1 - x0) + abs(s) * (y1 - y0)) / 2 + 2 * k
-            reach_y = (abs(s) * (x1 - x0) + abs(c) * (y1 - y0)) / 2 + 2 * k
-            cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-            left = min(max(int(np.floor((cx - reach_x) / k)) * k, 0), (img.shape[3] - 1) // k * k)
-            top = min(max(int(np.floor((cy - reach_y) / k)) * k, 0), (img.shape[2] - 1) // k * k)
-            right = min(max(int(np.ceil((cx + reach_x) / k)) * k, left + k), img.shape[3] + (-img.shape[3]) % k)
-            bottom = min(max(int(np.ceil((cy + reach_y) / k)) * k, top + k), img.shape[2] + (-img.shape[2]) % k)
-            img = img[:, :, top:bottom, left:right]
-            img = F.avg_pool2d(F.pad(img, (0, right - left - img.shape[3], 0, bottom - top - img.shape[2])), k)
-            offset, step = (k - 1) / 2.0, float(k)
-            x0, x1, y0, y1 = x0 - left, x1 - left, y0 - top, y1 - top
-        h, w = img.shape[2], img.shape[3]
-        if angles is None or angles[b] == 0.0:
-            xs, ys = torch.broadcast_tensors((x0 + t * (x1 - x0))[None, :], (y0 + t * (y1 - y0))[:, None])
-        else:  # offsets from the box centre, turned by the angle
-            dx, dy = torch.broadcast_tensors(((t - 0.5) * (x1 - x0))[None, :], ((t - 0.5) * (y1 - y0))[:, None])
-            c, s = float(np.cos(angles[b])), float(np.sin(angles[b]))
-            xs, ys = (x0 + x1) / 2 + c * dx - s * dy, (y0 + y1) / 2 + s * dx + c * dy
-        xs, ys = (xs - offset) / step, (ys - offset) / step  # in pooled pixel-centre coordinates
-        grid = torch.stack([(xs + 0.5) / w * 2 - 1, (ys + 0.5) / h * 2 - 1], -1)[None]
-        out.append(F.grid_sample(img, grid, mode="bilinear", padding_mode="zeros", align_corners=False))
-    return torch.cat(out).permute(0, 2, 3, 1)
 
 
 # -- BlazeFace ---------------------------------------------------------------------------
@@ -414,7 +353,6 @@ def detect_all_faces(images: Tensor, detector: nn.Module | None = None, *, min_s
             keep = scores[b] >= min_score
             cand[b].append((letter[[0, 1, 0, 1]] + boxes_n[b, keep] * side, letter[:2] + kps_n[b, keep] * side,
                             scores[b, keep]))
-        nchw = images.permute(0, 3, 1, 2)
         for scale in pyramid_scales(height, width, min_face_px):
             h, w = max(int(round(height * scale)), 1), max(int(round(width * scale)), 1)
             sy, sx = h / height, w / width
@@ -422,9 +360,8 @@ def detect_all_faces(images: Tensor, detector: nn.Module | None = None, *, min_s
             anchors = torch.as_tensor(grid_anchors(hp, wp), dtype=images.dtype, device=images.device)
             step = max(1, _LEVEL_PIXELS // (hp * wp))
             for start in range(0, bsz, step):
-                level = F.interpolate(nchw[start:start + step], size=(h, w), mode="bilinear",
-                                      antialias=scale < 1, align_corners=False)
-                level = F.pad(level, (0, wp - w, 0, hp - h)).permute(0, 2, 3, 1)
+                level = resize_bilinear(images[start:start + step], (h, w), antialias=scale < 1)
+                level = F.pad(level, (0, 0, 0, wp - w, 0, hp - h))
                 regressors, logits = detector(level)
                 score = torch.sigmoid(logits[..., 0].clamp(-100.0, 100.0))
                 for i in range(len(level)):

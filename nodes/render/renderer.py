@@ -44,10 +44,10 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ..geometry.camera import project_points_torch
+from ..geometry.image import box_downsample
 from .raster import rasterize_triangles, silhouette_pairs
 
 __all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals", "triangle_adjacency",
@@ -452,7 +452,7 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     depth = geometry[:, 0].reshape(bsz, hs, ws)
     bary = geometry[:, 1:4].reshape(bsz, hs, ws, 3)
     if s > 1:
-        image = F.avg_pool2d(image.permute(0, 3, 1, 2), s).permute(0, 2, 3, 1)
+        image = box_downsample(image, s)
         c = s // 2
         depth, tri, bary = depth[:, c::s, c::s], tri[:, c::s, c::s], bary[:, c::s, c::s]
     return RenderOutput(image[..., :3], image[..., 3], depth, tri, bary)
