@@ -1,7 +1,8 @@
 """nodegraph: typed dataflow graphs for facial performance capture."""
 
 from .errors import GraphError, GraphIssue, InputError, NodeError, NodegraphError
-from .node import FRAMEWISE, SEQUENCE, In, Index, Kind, Node, NodeParams, Out, Param, run_node, windowed
+from .node import FRAMEWISE, SEQUENCE, In, Kind, Node, Out, run_node, windowed
+from .params import Index, NodeParams, Param
 from .graph import Graph, PortRef
 from .runner import RunResult, explain, run
 from .ports import PortType

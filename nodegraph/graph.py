@@ -39,7 +39,8 @@ if TYPE_CHECKING:
     import networkx as nx
 from .errors import GraphError, GraphIssue
 from .files import write_text_atomic
-from .node import Node, _number_problem, format_validation_error, path_params
+from .node import Node
+from .params import format_validation_error, number_problem, path_params
 
 __all__ = ["SCHEMA", "PortRef", "NodeRef", "NodeSpec", "GraphParameter", "Graph", "parse_value"]
 
@@ -77,18 +78,22 @@ class NodeSpec:
 
 @dataclass
 class GraphParameter:
-    """A node parameter a user sets per run, by a graph-level name."""
+    """A node parameter a user sets per run, by a graph-level name: parameter `param` of node
+    `node`, written "node.param" in JSON (`target`)."""
 
-    target: str
+    node: str
+    param: str
     description: str = ""
 
     @property
-    def node(self) -> str:
-        return self.target.rpartition(".")[0]
+    def target(self) -> str:
+        return f"{self.node}.{self.param}"
 
-    @property
-    def param(self) -> str:
-        return self.target.rpartition(".")[2]
+    @classmethod
+    def parse(cls, target: str, description: str = "") -> "GraphParameter":
+        """From the JSON form "node.param" (node ids hold no dot)."""
+        node, _, param = target.rpartition(".")
+        return cls(node, param, description)
 
 
 class NodeRef:
@@ -139,7 +144,7 @@ def parse_value(node_cls: type[Node], param: str, text: str) -> Any:
     (numbers, lists, booleans).
     """
     annotation = node_cls.Params.model_fields[param].annotation
-    if not _number_problem(annotation, text):
+    if not number_problem(annotation, text):
         try:
             TypeAdapter(annotation).validate_python(text)
             return text
@@ -207,7 +212,7 @@ class Graph:
 
     def expose(self, name: str, node: NodeRef | str, param: str, description: str = "") -> None:
         """Make `node.param` settable per run as graph parameter `name`."""
-        self.parameters[name] = GraphParameter(f"{node}.{param}", description)
+        self.parameters[name] = GraphParameter(str(node), param, description)
 
     def apply(self, values: dict[str, Any], *, strings: bool = False) -> None:
         """Set graph parameters by name (`strings=True` parses command-line text).
@@ -408,7 +413,7 @@ class Graph:
         if cycle:
             issues.append(GraphIssue(cycle[0], "", f"cycle: {' -> '.join(cycle)}"))
         for name, gp in self.parameters.items():
-            node_id, _, param = gp.target.rpartition(".")
+            node_id, param = gp.node, gp.param
             if node_id not in self.nodes:
                 issues.append(GraphIssue(node_id, param, f"graph parameter '{name}' targets unknown node "
                                          f"'{node_id}' ('{gp.target}')"))
@@ -550,7 +555,7 @@ class Graph:
             graph.edges.append((edge[0], edge[1]))
         for name, value in parsed.parameters.items():
             entry = value if isinstance(value, _ParameterEntry) else _ParameterEntry(target=value)
-            graph.parameters[name] = GraphParameter(entry.target, entry.description)
+            graph.parameters[name] = GraphParameter.parse(entry.target, entry.description)
         issues.extend(graph.validate())
         if issues:
             raise GraphError(issues, source)

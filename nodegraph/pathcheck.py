@@ -34,7 +34,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Iterable
 
 from .errors import GraphError, GraphIssue
-from .node import Node, _field_flag
+from .node import Node
+from .params import field_flag
 
 if TYPE_CHECKING:
     from .schedule import Plan
@@ -109,7 +110,7 @@ def _values(node: Node, flag: str) -> list[tuple[str, str]]:
     """(parameter, path) of `node`'s non-empty path values declared with `flag`."""
     out = []
     for name in node.Params.model_fields:
-        if not _field_flag(node.Params, name, flag, False):
+        if not field_flag(node.Params, name, flag, False):
             continue
         value = getattr(node.params, name)
         for item in value if isinstance(value, (list, tuple)) else [value]:

@@ -26,7 +26,7 @@ from .dask_run import CONNECT_TIMEOUT_S, SCHEDULERS, check_scheduler, dask_graph
 from .errors import NodeError
 from .explain import explain
 from .graph import Graph
-from .node import _field_flag
+from .params import field_flag
 from .pathcheck import check_output_paths
 from .ports import PortType
 from .progress import Reporter, progress_mode, warnings_as_events
@@ -237,7 +237,7 @@ def _destinations(plan: Plan, nodes: Iterable[str]) -> list[str]:
         node = plan.nodes[nid]
         for name in node.Params.model_fields:
             value = getattr(node.params, name)
-            if _field_flag(node.Params, name, "output_file", False) and isinstance(value, str) and value:
+            if field_flag(node.Params, name, "output_file", False) and isinstance(value, str) and value:
                 paths.append(value)
     return paths
 

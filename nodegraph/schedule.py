@@ -23,7 +23,8 @@ from .cache import Cache, make_key
 from .files import file_sha256
 from .errors import GraphError, GraphIssue, NodeError
 from .graph import Graph
-from .node import SEQUENCE, Node, _field_flag, wrap_error
+from .node import SEQUENCE, Node, wrap_error
+from .params import field_flag
 from .plan_names import PortSlot, TaskName
 
 __all__ = ["Piece", "TaskPlan", "Plan", "PortSlot", "TaskName", "plan_run", "chunk_bounds", "explain_miss",
@@ -309,7 +310,7 @@ def _hash_inputs(node: Node, paths: Iterable[Path], hash_file: Callable[[Path], 
 
 def _input_param(node: Node, path: Path) -> str:
     """The `input_file` parameter of `node` that names `path` (the only one when none does), or ""."""
-    names = [name for name in node.Params.model_fields if _field_flag(node.Params, name, "input_file", False)]
+    names = [name for name in node.Params.model_fields if field_flag(node.Params, name, "input_file", False)]
     for name in names:
         value = getattr(node.params, name)
         values = value if isinstance(value, (list, tuple)) else [value]

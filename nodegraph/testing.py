@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .node import FRAMEWISE, SEQUENCE, In, Node, NodeParams, Out, Param, windowed
+from .node import FRAMEWISE, SEQUENCE, In, Node, Out, windowed
+from .params import NodeParams, Param
 from .types import Files, JsonValue, ParamSequence
 
 __all__ = ["Ramp", "Scale", "MovingAverage", "CumSum", "Fail", "Sum", "Total", "Offset", "Weighted", "Noise",

@@ -20,7 +20,6 @@ detection failed have NaN boxes and points and confidence 0. Torch is imported i
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +29,9 @@ from pydantic import Field, field_validator, model_validator
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, ImageSequence, In, Index, InputError, Landmarks2D, Node,
                        NodeParams, Out, Param, ParamSequence, TorchModel)
-from nodegraph.node import _number_problem
 from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
+from nodegraph.flags import flags_to_mask
+from nodegraph.params import ParamProblem, number_problem
 
 from .correspondence import MEDIAPIPE_TO_68
 from .tracking import FACE_CHOICES, FAILURE_REASONS
@@ -60,7 +60,9 @@ def network_images(images: ImageSequence, where: str = "images") -> np.ndarray:
 
 
 class LoadFrames(Node):
-    """Read frames from a numbered image pattern or a video file (chosen by the extension)."""
+    """Read frames from a numbered image pattern or a video file (chosen by the extension): an
+    `io.LoadImageSequence` (colour space auto) or an `io.LoadVideo` under one node type, so a
+    landmark graph takes either source with one parameter."""
 
     type_name = "landmarks.LoadFrames"
     version = 1
@@ -75,35 +77,25 @@ class LoadFrames(Node):
 
     images = Out(ImageSequence, doc="(F, H, W, C) float32; video and integer files 'srgb', float files 'linear'.")
 
-    def frame_count(self) -> int | None:
+    def _loader(self) -> Node:
+        """The io node that reads `path`, with this node's id (its errors name this node)."""
         p = self.params
         if _is_video(p.path):
-            from ..io.video import video_index
+            from ..io.video import LoadVideo
 
-            return video_index(p.path).count
+            return LoadVideo(path=p.path, fps=p.fps, node_id=self.node_id)
         from ..io.image import LoadImageSequence
 
-        return LoadImageSequence(path=p.path, first_frame=p.first_frame, fps=p.fps).frame_count()
+        return LoadImageSequence(path=p.path, first_frame=p.first_frame, fps=p.fps, node_id=self.node_id)
+
+    def frame_count(self) -> int | None:
+        return self._loader().frame_count()
 
     def input_files(self, frames: range | None = None) -> list[Path]:
-        p = self.params
-        if _is_video(p.path):
-            return [Path(p.path)] if os.path.isfile(p.path) else []
-        from ..io.image import image_frame_files
-
-        return image_frame_files(p.path, frames, p.first_frame)
+        return self._loader().input_files(frames)
 
     def run(self) -> dict[str, ImageSequence]:
-        p = self.params
-        if _is_video(p.path):
-            from ..io.video import read_video_frames, video_index
-
-            index = video_index(p.path)
-            pixels = read_video_frames(p.path, self.frames, index)
-            return {"images": ImageSequence(pixels, ["R", "G", "B"], fps=index.fps or p.fps, colour_space="srgb")}
-        from ..io.image import load_image_sequence
-
-        return {"images": load_image_sequence(p.path, self.frames, first_frame=p.first_frame, fps=p.fps)}
+        return dict(self.run_delegate(self._loader()))
 
 
 def _face_problem(value: object) -> str:
@@ -153,11 +145,11 @@ class _FaceParams(NodeParams):
                     problem = _face_problem(value)
                 elif name in cls.model_fields:
                     info = cls.model_fields[name]
-                    problem = _number_problem(info.annotation, value, tuple(info.metadata))
+                    problem = number_problem(info.annotation, value, tuple(info.metadata))
                 else:
                     continue
                 if problem:
-                    raise ValueError(f"'{name}': {problem}")
+                    raise ParamProblem(name, problem)
         return data
 
 
@@ -322,9 +314,9 @@ class TrackFaces(Node):
         reread: float = Param(0.05, ge=0, description="Crop movement (the larger of the centre's shift in crop "
                               "sides, |log| of the side ratio and the roll change in radians) above which a "
                               "frame is read again (twice at most) in the crop of its own points: an off-centre "
-                              "face is read less well. 0.05 re-reads only fast moves (1 frame of "
-                              "bench/detect_faces.py's fast video); 0 re-reads every frame, which shakes less "
-                              "(jitter 0.8 -> 0.3% of the eye distance on its slow video) at about 3 times the cost.")
+                              "face is read less well. The default re-reads only fast moves, so a followed "
+                              "frame mostly costs one face-mesh read (bench/detect_faces.py prints the extra "
+                              "reads); 0 re-reads every frame: steadier points at up to three reads a frame.")
         velocity: float = Param(1.0, ge=0, le=1, description="How far each crop is moved on by the face's "
                                 "motion over the last two frames (1 = constant velocity, 0 = where the last "
                                 "frame's points were): a crop that lags a moving face drifts off it.")
@@ -373,7 +365,7 @@ class SaveLandmarks(Node):
     """Write boxes, landmarks and flags of all frames to one NPZ file (atomically)."""
 
     type_name = "landmarks.SaveLandmarks"
-    version = 1
+    version = 2  # 2: failed read by nodegraph.flags (a NaN flag counts as failed; was saved as not failed)
     kind = SEQUENCE
     writes_files = True
 
@@ -389,7 +381,8 @@ class SaveLandmarks(Node):
     landmarks68 = In(Landmarks2D, doc="(F, 68, 2) pixels.")
     landmarks468 = In(Landmarks2D, doc="(F, 468, 2) pixels.")
     presence = In(ParamSequence, doc="presence per frame.")
-    failed = In(ParamSequence, doc="failed: 1 where no face was found.")
+    failed = In(ParamSequence, doc="failed: 1 where no face was found (read by nodegraph.flags: the 'failed' "
+                "column, else the first; NaN counts as failed).")
     iris = In(Landmarks2D, optional=True, doc="(F, 10, 2) iris points, pixels (landmarks.FaceLandmarks or "
               "landmarks.TrackFaces): saved as iris [F, 2, 5, 2] with the per-eye gaze [F, 2, 2].")
     reasons = In(ParamSequence, optional=True, doc="reason: why each frame failed, a code (landmarks.TrackFaces): "
@@ -414,7 +407,7 @@ class SaveLandmarks(Node):
                   "landmarks68": landmarks68.points.astype(np.float32),
                   "landmarks468": landmarks468.points.astype(np.float32),
                   "presence": presence.values[:, 0].astype(np.float32),
-                  "failed": failed.values[:, 0] > 0.5,
+                  "failed": flags_to_mask(failed, len(failed.values)),
                   "frames": np.arange(self.frames.start, self.frames.stop, dtype=np.int64)}
         if iris is not None:
             from .tracking import eye_gaze

@@ -151,14 +151,14 @@ def test_declared_bounds_replace_the_magnitude_guard():
 
 
 def test_no_node_default_breaks_the_strict_params():
-    from nodegraph.node import _number_problem
+    from nodegraph.params import number_problem
 
     bad = []
     for name, cls in registry.all_types().items():
         for field, info in cls.Params.model_fields.items():
             if not info.is_required():
                 value = info.get_default(call_default_factory=True)
-                problem = _number_problem(info.annotation, value, tuple(info.metadata))
+                problem = number_problem(info.annotation, value, tuple(info.metadata))
                 if problem:
                     bad.append(f"{name}.{field}: {problem}")
     assert not bad
@@ -227,3 +227,52 @@ def test_frames_past_a_sources_end_are_refused_before_running(tmp_path, cache_di
     assert main(["run", str(graph_file), "--frames", "0:999", "--cache", str(cache_dir), "--progress", "none"]) == 2
     err = capsys.readouterr().err
     assert err.count("expected frames within the 40 frame(s)") == 1 and "Traceback" not in err
+
+
+def test_a_model_check_names_its_parameter_through_param_problem():
+    """A Params validator raises ParamProblem(param, problem): errors name that parameter (the
+    report does not read the name back out of the message text)."""
+    from pydantic import model_validator
+
+    from nodegraph.params import ParamProblem, format_validation_error
+
+    class Params(NodeParams):
+        low: float = Param(0.0, description="lower end")
+        high: float = Param(1.0, description="upper end")
+
+        @model_validator(mode="after")
+        def _ordered(self) -> "Params":
+            if not self.high > self.low:
+                raise ParamProblem("high", f"expected more than low ({self.low}), found {self.high}")
+            return self
+
+    with pytest.raises(ValueError) as err:
+        Params(low=2.0, high=1.0)
+    assert format_validation_error(err.value) == [("high", "expected more than low (2.0), found 1.0")]
+    # a plain ValueError whose text merely looks like "'name': ..." stays a model-wide message
+    class Plain(NodeParams):
+        @model_validator(mode="after")
+        def _fail(self) -> "Plain":
+            raise ValueError("'high': looks like a parameter")
+
+    with pytest.raises(ValueError) as err:
+        Plain()
+    assert format_validation_error(err.value) == [("params", "'high': looks like a parameter")]
+    # strict numbers go through the same path
+    with pytest.raises(ValueError) as err:
+        Params(low="0")
+    assert format_validation_error(err.value) == [("low", "expected a number, found the string '0'")]
+
+
+def test_graph_parameters_keep_node_and_parameter_apart(tmp_path):
+    g = Graph()
+    g.add("test.Ramp", id="shot", num_frames=4)
+    g.expose("frames", "shot", "num_frames", description="how many")
+    g.save(tmp_path / "g.json")
+    assert json.loads((tmp_path / "g.json").read_text())["parameters"] == {
+        "frames": {"target": "shot.num_frames", "description": "how many"}}
+    loaded = Graph.load(tmp_path / "g.json")
+    gp = loaded.parameters["frames"]
+    assert (gp.node, gp.param, gp.target) == ("shot", "num_frames", "shot.num_frames")
+    loaded.apply({"frames": 6})
+    assert loaded.nodes["shot"].params["num_frames"] == 6
