@@ -41,7 +41,7 @@ from pydantic import ValidationError
 
 from .errors import InputError, NodeError
 from .params import NodeParams, field_flag, format_validation_error
-from .types import PortType
+from .ports import PortType
 
 __all__ = ["Kind", "FRAMEWISE", "SEQUENCE", "windowed", "In", "Out", "Node", "run_node", "execute", "wrap_error",
            "task_seed"]

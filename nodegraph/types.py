@@ -13,8 +13,7 @@ Each concept lives in its own module; this one re-exports them all, so that
 - `nodegraph.models`: `TorchModel` with the architecture registry and model files;
 - `nodegraph.values`: `Table`, `JsonValue`, `Files`.
 
-Type names (what graph files, cache entries and model files store) are the class names, as
-before the split.
+Type names (what graph files, cache entries and model files store) are the class names.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Cache, second round: code hashes over imported helpers, writers skipped while their files are
+"""Cache keys and writers: code hashes over imported helpers, writers skipped while their files are
 intact, per-chunk input files, list ports, seeds, devices, per-node chunks."""
 
 from __future__ import annotations
