@@ -274,18 +274,18 @@ class Average(Node):
 
 
 class AdaptiveSmooth(Node):
-    """Smooth the pose and every expression weight by its own measured noise, keeping blinks and snaps sharp."""
+    """Smooth the pose and the expression weights by their measured noise, keeping blinks and snaps sharp."""
 
     type_name = "temporal.AdaptiveSmooth"
-    version = 1
+    version = 2  # 2: with model and camera, pose and weights smoothed together in the projected landmarks' metric
     kind = SEQUENCE
 
     class Params(NodeParams):
-        fidelity: float = Param(0.85, gt=0, le=2, description="Residual RMS aimed at, in units of each curve's "
-                                "measured noise (1 = the discrepancy principle). Below 1 because a smoother keeps "
-                                "part of the noise in its own degrees of freedom, so aiming at all of it smooths "
-                                "too much; 0.85 gives the lowest error to the truth on bench/smoothing.py's "
-                                "curves (figures in its output and the README).")
+        fidelity: float = Param(0.85, gt=0, le=2, description="Residual RMS aimed at, in units of the measured "
+                                "noise (1 = the discrepancy principle). Below 1 because a smoother keeps part of "
+                                "the noise in its own degrees of freedom, so aiming at all of it smooths too much "
+                                "(bench/smoothing.py prints the error to the truth and the landmark jitter and "
+                                "deviation this gives against 3-frame averaging).")
         edge_k: float = Param(3.0, gt=0, description="A frame whose curvature exceeds edge_k noise std is an event "
                               "(blink, jaw snap, fast turn) and is not smoothed through.")
         weights: bool = Param(True, description="Smooth the expression weights too (false: the pose only).")
@@ -294,19 +294,57 @@ class AdaptiveSmooth(Node):
                 "weights): e.g. fit.Expression's, or the temporal nodes'.")
     failed = In(ParamSequence, optional=True, doc="(F, 1+) flags, 1 (or NaN) in the 'failed' column for frames "
                 "to leave alone and not use.")
+    model = In(FaceModel, optional=True, doc="The fitted model (identity applied): with `camera`, the pose and "
+               "the weights are smoothed together, their noise and smoothness measured on the projected 68 "
+               "landmarks (pixels); without, each curve by its own noise.")
+    camera = In(Camera, optional=True, doc="The plate's camera (with `model`).")
     smoothed = Out(ParamSequence, doc="Smoothed parameters (failed frames as given).")
 
-    def run(self, fitted: ParamSequence, failed: ParamSequence | None = None) -> dict[str, ParamSequence]:
-        from .adaptive import smooth_pose_and_weights
+    def run(self, fitted: ParamSequence, failed: ParamSequence | None = None, model: FaceModel | None = None,
+            camera: Camera | None = None) -> dict[str, ParamSequence]:
+        from .adaptive import FACE68_GROUPS, smooth_pose_and_weights
 
+        if (model is None) != (camera is None):
+            raise InputError("camera" if camera is None else "model", "expected both 'model' and 'camera' "
+                             "connected (to smooth in the projected landmarks' metric) or neither, found one")
         try:
-            layout = params_layout(fitted.names, [], "fitted")
+            layout = params_layout(fitted.names, [] if model is None else list(model.expression_names), "fitted")
         except ValueError as err:
             raise InputError("fitted", str(err).removeprefix("fitted: ")) from err
         pose = np.r_[layout.rotation, layout.translation]
         others = np.setdiff1d(np.arange(fitted.values.shape[1]), pose)
         linear = np.r_[layout.translation, others if self.params.weights else np.zeros(0, np.int64)]
         mask = flags_to_mask(failed, fitted.num_frames)
+        landmarks = None
+        if model is not None:
+            if len(model.landmarks) != 68:
+                raise InputError("model", f"expected a model with its 68 landmark vertices, found {len(model.landmarks)}")
+            landmarks = _projected_landmarks_function(model, camera, layout)
         out = smooth_pose_and_weights(fitted.values, layout.rotation, linear, mask, matrix=layout.matrix,
+                                      landmarks=landmarks, landmark_groups=None if landmarks is None else FACE68_GROUPS,
                                       fidelity=self.params.fidelity, edge_k=self.params.edge_k)
         return {"smoothed": ParamSequence(out.astype(np.float32), list(fitted.names))}
+
+
+def _projected_landmarks_function(model: FaceModel, camera: Camera, layout: Any):
+    """(N, D) rows of a sequence with `layout` -> (N, 136) pixels of the model's 68 landmarks posed by them."""
+    from ..geometry.camera import project_points
+    from ..geometry.rotation import axis_angle_to_rotmat
+
+    index = np.asarray(model.landmarks, np.int64)
+    neutral = np.asarray(model.neutral, np.float64)[index]  # (68, 3) cm
+    have = layout.weights >= 0
+    deltas = np.asarray(model.expression_deltas, np.float64)[have][:, index]  # (K', 68, 3) cm per unit weight
+    columns = layout.weights[have]
+    intrinsics = [camera.fx, camera.fy, camera.cx, camera.cy]
+    distortion = [camera.k1, camera.k2] if (camera.k1 or camera.k2) else None
+
+    def landmarks(rows: np.ndarray) -> np.ndarray:
+        rows = np.asarray(rows, np.float64)
+        local = neutral + np.einsum("nk,klc->nlc", rows[:, columns], deltas)
+        rot = rows[:, layout.rotation].reshape(-1, 3, 3) if layout.matrix else axis_angle_to_rotmat(
+            rows[:, layout.rotation])
+        world = np.einsum("nij,nlj->nli", rot, local) + rows[:, layout.translation][:, None]
+        return project_points(world, camera.world_to_camera, intrinsics, distortion).reshape(len(rows), -1)
+
+    return landmarks
