@@ -41,7 +41,6 @@ import io
 import json
 import os
 import shutil
-import socket
 import time
 import uuid
 from pathlib import Path
@@ -52,6 +51,7 @@ import numpy as np
 from .files import file_sha256, staged_location, write_bytes_atomic, write_text_atomic
 from .staging import unstaged
 from .types import Files, PortType, port_type_by_name
+from .writer_tag import HOST, WriterTag, pid_alive
 
 __all__ = ["DEFAULT_CACHE", "MARKER", "COPY_LIMIT", "cache_dir_from_env", "canonical_json", "make_key",
            "Cache", "CorruptEntry", "NotACache", "resolve_cache"]
@@ -60,7 +60,6 @@ DEFAULT_CACHE = ".nodegraph/cache"
 MARKER = "NODEGRAPH_CACHE"
 COPY_LIMIT = 64 << 20  # writers whose files total at most this many bytes keep a copy in the entry
 _SUBFOLDERS = ("objects", "tmp", "written", "hashes", "code", "errors", "last")
-_HOST = socket.gethostname().replace(".", "-")  # temp folder names split on "."
 
 
 def cache_dir_from_env() -> Path:
@@ -103,16 +102,6 @@ def _valid_manifest(manifest: Any) -> bool:
     copies = manifest.get("copies", [])
     return isinstance(copies, list) and all(
         isinstance(c, dict) and c.get("file") in files and isinstance(c.get("path"), str) for c in copies)
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 class _HashingWriter:
@@ -391,7 +380,7 @@ class Cache:
         self._mark()
         tmp_root = self.root / "tmp"
         tmp_root.mkdir(parents=True, exist_ok=True)
-        tmp = tmp_root / f"{key}.{_HOST}.{os.getpid()}.{uuid.uuid4().hex}"
+        tmp = tmp_root / f"{key}.{WriterTag.new()}"
         tmp.mkdir()
         try:
             files, ports = {}, {}
@@ -428,7 +417,7 @@ class Cache:
         folder = self.entry_dir(key)
         if not folder.exists():
             return
-        trash = self.root / "tmp" / f"trash-{key}.{_HOST}.{os.getpid()}.{uuid.uuid4().hex}"
+        trash = self.root / "tmp" / f"trash-{key}.{WriterTag.new()}"
         trash.parent.mkdir(parents=True, exist_ok=True)
         try:
             os.rename(folder, trash)
@@ -552,9 +541,9 @@ class Cache:
 
     @staticmethod
     def _writer_gone(folder: Path) -> bool:
-        parts = folder.name.split(".")
-        if len(parts) >= 4 and parts[-3] == _HOST and parts[-2].isdigit():
-            return not _pid_alive(int(parts[-2]))
+        tag = WriterTag.of_name(folder.name)
+        if tag is not None and tag.host == HOST:
+            return not pid_alive(tag.pid)
         try:
             return time.time() - folder.stat().st_mtime > 3600
         except FileNotFoundError:

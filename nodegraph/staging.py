@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import uuid
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
+
+from .writer_tag import WriterTag
 
 __all__ = ["STAGE_PREFIX", "StagedFile", "Staging", "new_token", "staging", "unstaged", "current", "location",
            "publish", "commit", "discard", "nearest_existing"]
@@ -42,7 +43,7 @@ _CURRENT: ContextVar["Staging | None"] = ContextVar("nodegraph_staging", default
 
 def new_token() -> str:
     """A name part unique to one run: host, process id and a random suffix."""
-    return f"{socket.gethostname().replace('.', '-')}.{os.getpid()}.{uuid.uuid4().hex[:12]}"
+    return str(WriterTag.new(12))
 
 
 def nearest_existing(path: str | os.PathLike) -> Path:
@@ -247,23 +248,12 @@ def _remove_roots(entries: Iterable[StagedFile]) -> None:
     roots = list(dict.fromkeys(entry.root for entry in entries))
     for root in roots:
         shutil.rmtree(root, ignore_errors=True)
-    host = socket.gethostname().replace(".", "-")
     for folder in dict.fromkeys(os.path.dirname(root) for root in roots):
         try:
             names = [n for n in os.listdir(folder) if n.startswith(STAGE_PREFIX)]
         except OSError:
             continue
         for name in names:
-            parts = name[len(STAGE_PREFIX):].split(".")
-            if len(parts) == 3 and parts[0] == host and parts[1].isdigit() and not _pid_alive(int(parts[1])):
+            tag = WriterTag.of_name(name[len(STAGE_PREFIX):])
+            if tag is not None and tag.writer_gone():
                 shutil.rmtree(os.path.join(folder, name), ignore_errors=True)
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OSError):
-        return True
-    return True

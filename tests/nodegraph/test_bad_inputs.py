@@ -74,12 +74,12 @@ def test_temp_folders_of_dead_writers_are_counted_and_collected(cache_dir):
     run(chain(), chunk=10, scheduler="sync", cache=cache_dir)
     proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     dead_pid = int(proc.stdout)
-    from nodegraph.cache import _HOST
+    from nodegraph.writer_tag import HOST
 
-    dead = cache_dir / "tmp" / f"{'a' * 64}.{_HOST}.{dead_pid}.{'b' * 32}"
+    dead = cache_dir / "tmp" / f"{'a' * 64}.{HOST}.{dead_pid}.{'b' * 32}"
     dead.mkdir(parents=True)
     (dead / "values.npz").write_bytes(b"x" * 1000)
-    alive = cache_dir / "tmp" / f"{'c' * 64}.{_HOST}.{os.getpid()}.{'d' * 32}"
+    alive = cache_dir / "tmp" / f"{'c' * 64}.{HOST}.{os.getpid()}.{'d' * 32}"
     alive.mkdir()
     info = Cache(cache_dir).info()
     assert info["temp_folders"] == 2 and info["temp_bytes"] >= 1000

@@ -96,3 +96,22 @@ def test_explain_names_the_list_port_whose_connections_changed(tmp_path, connect
         changed.connect("ramp.values", "w.values")
     rows = [r for r in explain(changed, chunk=10, cache=cache) if r["node"] == "w"]
     assert [r["reason"] for r in rows] == ["upstream 'values' changed"] * 2
+
+
+def test_writer_tags_are_written_and_read_back_in_one_place():
+    import os
+    import subprocess
+    import sys
+
+    from nodegraph.writer_tag import HOST, WriterTag
+
+    tag = WriterTag.new(12)
+    assert (tag.host, tag.pid, len(tag.nonce)) == (HOST, os.getpid(), 12)
+    assert WriterTag.of_name(f"{'a' * 64}.{tag}") == tag == WriterTag.of_name(f".nodegraph-staging.{tag}")
+    assert WriterTag.of_name(str(tag)) == tag
+    assert WriterTag.of_name("notes.txt") is None and WriterTag.of_name("a.b.c") is None
+    assert not tag.writer_gone()  # this process
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                              text=True, check=True).stdout)
+    assert WriterTag(HOST, dead, "x").writer_gone()
+    assert not WriterTag("another-host", dead, "x").writer_gone()  # cannot be checked from here
