@@ -46,6 +46,11 @@ Implementation notes (what makes it fast):
     applied to every vertex afterwards, in blocks of frames.
   - L-BFGS is our own (`lbfgs.py`, same algorithm as `torch.optim.LBFGS`): constructing a
     torch optimizer imports `torch._dynamo` (about 2 s per process).
+  - On the CPU the robust per-frame alignments (every IRLS step: distances, lower quartile,
+    weights and Kabsch moments), the stillness test and the still refinement's gather are numba
+    kernels, one pass over the points each (`robust_kernels.py`; `kernels=False` runs the
+    torch ops): on the whole head (651 x 26,719) mode pursuit's CPU time went from 5.8 to
+    about 2.3 s at one thread, the same median error.
 
 Last, every frame is re-aligned on the vertices still over the whole shot
 (`still_refinement`): frame by frame, expression motion smaller than the final width looks
@@ -74,7 +79,7 @@ from ..geometry.rigid import invert_rigid_torch
 from ..geometry.sampling import farthest_point_sampling_torch
 from .energy import EnergyData, block_energy, default_block_frames, fused_energy
 from .lbfgs import lbfgs
-from .robust import (apply_transforms, noise_level, residual_scale, rest_mode,
+from .robust import (apply_transforms, frame_blocks, noise_level, residual_scale, rest_mode,
                      robust_align, still_vertices)
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, Stage, StageLog, make_schedule
 
@@ -144,7 +149,7 @@ def _update_rest(x: Tensor, rot: Tensor, trans: Tensor, rest: Tensor, width: flo
 
 def _still_refinement(verts: Tensor, candidates: Tensor, centre: Tensor, scale: float, rot: Tensor,
                       trans: Tensor, prior: Tensor | None, *, sigma: float, width: float, window: int,
-                      iterations: int, max_points: int = 1 << 23) -> tuple[Tensor, Tensor]:
+                      iterations: int, max_points: int = 1 << 23, kernels: bool = True) -> tuple[Tensor, Tensor]:
     """Re-align every frame on the vertices that stay still over the whole shot.
 
     The bounded penalty cannot tell noise from expression motion smaller than its width (about
@@ -161,6 +166,7 @@ def _still_refinement(verts: Tensor, candidates: Tensor, centre: Tensor, scale: 
         rot, trans: (F, 3, 3), (F, 3) current world-to-skull transforms (normalised units).
         prior: (V,) vertex weights or None. sigma, width: noise std and final width (normalised).
         window: frames averaged by the stillness test. iterations: IRLS steps.
+        kernels: numba kernels on the CPU (see `mode_pursuit`).
     Returns:
         rot, trans (float64), refined or unchanged.
     """
@@ -168,15 +174,26 @@ def _still_refinement(verts: Tensor, candidates: Tensor, centre: Tensor, scale: 
     step = max(1, math.ceil(num_frames * candidates.numel() / max_points))
     ids = candidates[::step]
     dev = rot.device
-    x = ((verts[:, ids].to(torch.float64) - centre) / scale).to(dev, torch.float32).permute(0, 2, 1).contiguous()
+    if kernels and verts.device.type == "cpu":  # one pass (the torch ops below make five)
+        from .robust_kernels import gather_normalized
+
+        x = torch.empty(num_frames, 3, ids.numel(), dtype=torch.float32)
+        source, out = verts.contiguous().numpy(), x.numpy()
+        index, origin = ids.contiguous().numpy(), centre.double().contiguous().numpy()
+        frame_blocks(lambda lo, hi: gather_normalized(source[lo:hi], index, origin, float(scale), out[lo:hi]),
+                     num_frames)
+        x = x.to(dev)
+    else:
+        x = ((verts[:, ids].to(torch.float64) - centre) / scale).to(dev, torch.float32).permute(0, 2, 1).contiguous()
     stab = apply_transforms(x, rot, trans)
-    still = still_vertices(stab - stab.median(dim=0).values, sigma, window=window)
+    still = still_vertices(stab, sigma, window=window, centre=stab.median(dim=0).values, kernels=kernels)
     if int(still.sum()) < max(10, ids.numel() // 10):
         return rot, trans
     rest = stab.mean(dim=0)
     del stab
     weights = still.to(x.dtype) if prior is None else prior[ids].to(dev) * still.to(x.dtype)
-    aligned = robust_align(x, rest, rot, trans, width, iterations=max(iterations, 1), vertex_weights=weights)
+    aligned = robust_align(x, rest, rot, trans, width, iterations=max(iterations, 1), vertex_weights=weights,
+                           kernels=kernels)
     return aligned.rot, aligned.trans
 
 
@@ -308,8 +325,8 @@ def _spline_stages(x: Tensor, base: Tensor, basis: SplineBasis, rest_x: Tensor, 
 
 
 def _robust_initialization(x: Tensor, rot: Tensor, trans: Tensor, rest_x: Tensor | None,
-                           vertex_weights: Tensor | None, *, rounds: int, min_width: float
-                           ) -> tuple[Tensor, Tensor, Tensor, float]:
+                           vertex_weights: Tensor | None, *, rounds: int, min_width: float,
+                           kernels: bool = True) -> tuple[Tensor, Tensor, Tensor, float]:
     """Robust per-frame alignment to a rest estimate, alternating with the rest's mode.
 
     Round k: width `w_k = max(3 median_{f,v} |S_fv - R_v|, min_width)`, two IRLS steps of
@@ -331,7 +348,8 @@ def _robust_initialization(x: Tensor, rot: Tensor, trans: Tensor, rest_x: Tensor
         dist = apply_transforms(x, rot, trans).sub_(rest_x).square_().sum(1).sqrt_()
         width = max(3.0 * residual_scale(dist), min_width)
         del dist
-        aligned = robust_align(x, rest_x, rot, trans, width, iterations=2, vertex_weights=vertex_weights)
+        aligned = robust_align(x, rest_x, rot, trans, width, iterations=2, vertex_weights=vertex_weights,
+                               kernels=kernels)
         rot, trans = aligned.rot, aligned.trans
         if not fixed_rest:
             stab = apply_transforms(x, rot, trans)
@@ -353,7 +371,8 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
                  noise_multiple: float = 5.0, min_width: float = 0.02, init_rounds: int = 6,
                  polish_iterations: int = 3, still_refinement: bool = True, still_window: int = 15,
                  history_size: int = 10, device: str | torch.device | None = "auto",
-                 compile: bool = False, progress: ProgressFn | None = None) -> ModePursuitResult:
+                 compile: bool = False, kernels: bool = True,
+                 progress: ProgressFn | None = None) -> ModePursuitResult:
     """Stabilize a tracked mesh sequence by mode pursuit (see the module docstring).
 
     Minimises eq. 4 over the control dual quaternions of a cubic SDLB spline of the
@@ -403,6 +422,9 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         history_size: L-BFGS memory.
         device: "auto" (CUDA when available), "cpu", "cuda" or a torch device.
         compile: run the block kernel through `torch.compile` (pays a one-off compile).
+        kernels: on the CPU, the robust alignments, the stillness test and the still
+            refinement's gather run as numba kernels (`robust_kernels.py`: one pass over the
+            points per step, float64 sums); False: as torch ops (results agree to ~1e-6 cm).
         progress: optional callback `(fraction, message)`.
     Returns:
         ModePursuitResult.
@@ -502,7 +524,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
         weights_e = None if prior is None else prior[ids].to(dev)
         rot_a, trans_a, rest_x, init_width = _robust_initialization(
             x, rot0.to(dev), trans0.to(dev), rest_x, weights_e, rounds=max(init_rounds, 1),
-            min_width=min_width / scale)
+            min_width=min_width / scale, kernels=kernels)
         noise = noise_level(apply_transforms(x, rot_a, trans_a)) * scale
         plan = adaptive_plan(noise, init_width * scale, num_frames, noise_multiple=noise_multiple,
                              min_width=min_width, velocity_weight=velocity_weight)
@@ -567,14 +589,14 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
     if adaptive and polish_iterations > 0:
         # -- polish: per-frame robust alignment to the mode at the final width ------------------
         aligned = robust_align(x, rest_x, rot.to(dev), trans.to(dev), final_width / scale,
-                               iterations=polish_iterations, vertex_weights=weights_e)
+                               iterations=polish_iterations, vertex_weights=weights_e, kernels=kernels)
         rot, trans = aligned.rot, aligned.trans
         # at least 10 windows over the shot, so the stillness statistic is not noise itself
         window = min(still_window, num_frames // 10)
         if still_refinement and plan is not None and plan.noise_cm > 0 and window >= 3:
             rot, trans = _still_refinement(verts, candidates, centre, scale, rot, trans, prior,
                                            sigma=plan.noise_cm / scale, width=final_width / scale,
-                                           window=window, iterations=polish_iterations)
+                                           window=window, iterations=polish_iterations, kernels=kernels)
         if progress is not None:
             progress(1.0, f"polished every frame: robust alignment to the rest at {final_width:.3g} cm")
 

@@ -105,7 +105,7 @@ class ModePursuit(Node):
     type_name = "stabilize.ModePursuit"
     version = 3
     kind = SEQUENCE
-    preload = ("torch",)
+    preload = ("torch", "numba")  # the CPU kernels of robust_kernels.py import numba
     Params = ModePursuitParams
 
     @classmethod

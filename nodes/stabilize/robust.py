@@ -27,13 +27,15 @@ Layout: coordinates first, `x` (F, 3, V) float32 as in the mode-pursuit optimize
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
 __all__ = ["still_vertices", "RobustAlignment", "weighted_kabsch", "psi_weights", "robust_align", "rest_mode",
-           "noise_level", "residual_scale", "apply_transforms"]
+           "noise_level", "residual_scale", "apply_transforms", "kabsch_from_moments", "frame_blocks"]
 
 
 class RobustAlignment(NamedTuple):
@@ -80,10 +82,33 @@ def weighted_kabsch(x: Tensor, rest: Tensor, weights: Tensor | None = None) -> t
     cx = wx.sum(2).double()                                              # (F, 3)
     cr = (w @ rest.T).double()                                           # (F, 3)
     cov = torch.bmm(wx, rest.T.expand(f, v, 3)).double() - cx[:, :, None] * cr[:, None, :]
+    return _kabsch(cx, cr, cov)
+
+
+def kabsch_from_moments(moments: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-frame rigid fit from weighted moments (`robust_kernels.irls_moments`).
+
+    Args:
+        moments: (F, 16) float64: [sum w, sum w x (3), sum w r (3), sum w x r^T (9, row-major)]
+            with sum w > 0.
+    Returns:
+        rot (F, 3, 3) float64 (det +1), trans (F, 3) float64, as `weighted_kabsch`.
+    """
+    total = moments[:, :1]
+    cx = moments[:, 1:4] / total
+    cr = moments[:, 4:7] / total
+    cov = moments[:, 7:].reshape(-1, 3, 3) / total[:, :, None] - cx[:, :, None] * cr[:, None, :]
+    return _kabsch(cx, cr, cov)
+
+
+def _kabsch(cx: Tensor, cr: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+    """Rotation and translation taking centroid cx to cr given the (F, 3, 3) cross-covariance
+    `sum w (x - cx)(r - cr)^T` (float64)."""
+    f = cov.shape[0]
     u, _, vh = torch.linalg.svd(cov)                                     # cov = U S V^T
     d = torch.sign(torch.linalg.det(vh.transpose(1, 2) @ u.transpose(1, 2)))
     d = torch.where(d == 0, torch.ones_like(d), d)
-    fix = torch.ones(f, 3, dtype=torch.float64, device=x.device)
+    fix = torch.ones(f, 3, dtype=torch.float64, device=cov.device)
     fix[:, 2] = d
     rot = vh.transpose(1, 2) @ (fix[:, :, None] * u.transpose(1, 2))    # V diag(1,1,d) U^T
     trans = cr - (rot @ cx[:, :, None])[:, :, 0]
@@ -116,7 +141,8 @@ def residual_scale(distance: Tensor) -> float:
 
 
 def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: float, *,
-                 iterations: int = 4, vertex_weights: Tensor | None = None) -> RobustAlignment:
+                 iterations: int = 4, vertex_weights: Tensor | None = None,
+                 kernels: bool = True) -> RobustAlignment:
     """Iteratively reweighted Kabsch of every frame onto the rest, bounded penalty of width w.
 
     Minimises `sum_{f, v} c_v psi_w(|rot_f x_fv + trans_f - rest_v|)` per frame by IRLS
@@ -133,12 +159,23 @@ def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: flo
         width: w > 0 (units of x).
         iterations: IRLS steps (each one Kabsch per frame).
         vertex_weights: (V,) prior weights c_v >= 0 (e.g. higher on a rigid region), or None.
+        kernels: on the CPU, run each step as one fused pass per frame
+            (`robust_kernels.irls_moments`, float64 sums; 5-10x faster); False: torch ops.
     Returns:
         RobustAlignment. A frame with no vertex within w keeps least-squares weights.
     """
     if not width > 0:
         raise ValueError(f"width: expected > 0, found {width}")
+    if x.ndim != 3 or x.shape[1] != 3:
+        raise ValueError(f"x: expected shape (F, 3, V), found {tuple(x.shape)}")
+    f, _, v = x.shape
+    for name, value, shape in (("rest", rest, (3, v)), ("rot", rot, (f, 3, 3)), ("trans", trans, (f, 3)),
+                               ("vertex_weights", vertex_weights, (v,))):
+        if value is not None and tuple(value.shape) != shape:
+            raise ValueError(f"{name}: expected shape {shape} (from x), found {tuple(value.shape)}")
     rot, trans = rot.double(), trans.double()
+    if kernels and x.device.type == "cpu" and iterations > 0:
+        return _robust_align_cpu(x, rest, rot, trans, width, iterations, vertex_weights)
     weights = x.new_ones(x.shape[0], x.shape[2])
     for _ in range(iterations):
         dist = _distances(x, rot, trans, rest)
@@ -152,6 +189,46 @@ def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: flo
             weights = weights * vertex_weights.to(weights.dtype)
         rot, trans = weighted_kabsch(x, rest, weights)
     return RobustAlignment(rot, trans, weights)
+
+
+def _robust_align_cpu(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: float, iterations: int,
+                      vertex_weights: Tensor | None) -> RobustAlignment:
+    """`robust_align` by the numba kernel: the same steps, one pass over the points per step."""
+    from .robust_kernels import MOMENTS, irls_moments
+
+    f, _, v = x.shape
+    xs = x.detach().to(torch.float32).contiguous().numpy()
+    rs = rest.detach().to(torch.float32).contiguous().numpy()
+    prior = (np.ones(v, np.float32) if vertex_weights is None
+             else vertex_weights.detach().to(torch.float32).contiguous().numpy())
+    moments = np.empty((f, MOMENTS), np.float64)
+    weights = np.empty((f, v), np.float32)
+    for step in range(iterations):
+        r, t = rot.contiguous().numpy(), trans.contiguous().numpy()
+        out = weights if step == iterations - 1 else None
+
+        def block(lo: int, hi: int) -> None:
+            irls_moments(xs[lo:hi], rs, r[lo:hi], t[lo:hi], float(width), prior, max(1, v // 4),
+                         moments[lo:hi], np.empty((0, v), np.float32) if out is None else out[lo:hi])
+
+        frame_blocks(block, f)
+        rot, trans = kabsch_from_moments(torch.from_numpy(moments))
+    return RobustAlignment(rot, trans, torch.from_numpy(weights))
+
+
+def frame_blocks(run: Callable[[int, int], None], num_frames: int, *, min_frames: int = 32) -> None:
+    """Call `run(lo, hi)` on contiguous blocks of frames, one per torch thread, in parallel.
+
+    For numba kernels that release the GIL and compute each frame on its own: the result does
+    not depend on the number of threads. At most one block per `min_frames` frames.
+    """
+    threads = max(1, min(torch.get_num_threads(), num_frames // min_frames))
+    if threads == 1:
+        run(0, num_frames)
+        return
+    bounds = np.linspace(0, num_frames, threads + 1).round().astype(int)
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, bounds[:-1].tolist(), bounds[1:].tolist()))
 
 
 def rest_mode(stab: Tensor, radius: float, *, start: Tensor | None = None, steps: int = 3,
@@ -225,7 +302,8 @@ def noise_level(stab: Tensor) -> float:
 
 
 
-def still_vertices(residual: Tensor, sigma: float, *, window: int = 15, ratio: float = 2.0) -> Tensor:
+def still_vertices(residual: Tensor, sigma: float, *, window: int = 15, ratio: float = 2.0,
+                   centre: Tensor | None = None, kernels: bool = True) -> Tensor:
     """Which vertices stay at their rest up to the tracking noise, over the whole shot.
 
     Noise is white over frames; expressions are smooth. The residual `S_fv - R_v` of a vertex
@@ -243,12 +321,32 @@ def still_vertices(residual: Tensor, sigma: float, *, window: int = 15, ratio: f
         ratio: threshold over the noise-only mean square (2: with F / k = 20 windows the
             noise-only statistic has a relative std of about 0.18, so a still vertex fails
             the test with a probability under 1e-6).
+        centre: (3, V) subtracted from `residual` first (e.g. stabilized positions and their
+            per-vertex median), or None.
+        kernels: on the CPU, running window sums in one pass (`robust_kernels`; the same
+            float64 sums, 3-4x faster than the cumulative sum over frames); False: torch ops.
     Returns:
         (V,) bool.
     """
     if not sigma > 0:
         raise ValueError(f"sigma: expected > 0, found {sigma}")
+    if residual.ndim != 3 or residual.shape[1] != 3:
+        raise ValueError(f"residual: expected shape (F, 3, V), found {tuple(residual.shape)}")
+    if centre is not None and tuple(centre.shape) != tuple(residual.shape[1:]):
+        raise ValueError(f"centre: expected shape {tuple(residual.shape[1:])}, found {tuple(centre.shape)}")
     k = max(1, min(int(window), residual.shape[0]))
-    c = torch.cumsum(torch.cat([torch.zeros_like(residual[:1]), residual.double()]), 0)
-    mean_square = ((c[k:] - c[:-k]) / k).square().sum(1).mean(0)
-    return mean_square < ratio * 3.0 * sigma * sigma / k
+    if kernels and residual.device.type == "cpu":
+        from .robust_kernels import window_mean_square
+
+        out = np.empty(residual.shape[2], np.float64)
+        zero = np.zeros((3, residual.shape[2]), np.float32)
+        window_mean_square(residual.detach().to(torch.float32).contiguous().numpy(),
+                           zero if centre is None else centre.detach().to(torch.float32).contiguous().numpy(),
+                           k, out)
+        mean_square = torch.from_numpy(out)
+    else:
+        if centre is not None:
+            residual = residual - centre
+        c = torch.cumsum(torch.cat([torch.zeros_like(residual[:1]), residual.double()]), 0)
+        mean_square = ((c[k:] - c[:-k]) / k).square().sum(1).mean(0)
+    return mean_square.to(residual.device) < ratio * 3.0 * sigma * sigma / k
