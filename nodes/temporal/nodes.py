@@ -4,9 +4,10 @@
 - `temporal.Average`: three-frame weighted average (quaternion mean for rotations).
 - `temporal.SelfFlow`, `temporal.PlateFlow`: per-frame flow solves against both neighbours.
 - `temporal.Hybrid`: averaging, then plate flow (the paper's best).
-- `temporal.AdaptiveSmooth`: edge-preserving smoothing of the pose and every weight, by each
-  curve's measured noise (`nodes.temporal.adaptive`); a sequence node (the noise and the
-  smoothing are the shot's).
+- `temporal.AdaptiveSmooth`: edge-preserving smoothing of the pose and the weights
+  (`nodes.temporal.adaptive`): with the model and the camera, together in the metric of the
+  projected 68 landmarks (noise measured there, in pixels); without, each curve by its own
+  measured noise. A sequence node (the noise and the smoothing are the shot's).
 
 The others are windowed: a frame's result depends only on frames within the halo, so any chunk size
 gives the same result. Parameters use the layout of `nodes.temporal.layout` (rot_x..z
