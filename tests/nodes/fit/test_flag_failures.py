@@ -1,6 +1,7 @@
-"""fit.FlagFailures: no face, energy outliers against the shot's median, and the absolute
-reprojection check (the fitted landmarks projected into the camera against the plate's, in eye
-distances), which flags a one-frame shot that landed in a wrong minimum."""
+"""fit.FlagFailures: no face, energy outliers against the shot's median, and the absolute checks
+(the fitted landmarks projected into the camera against the plate's, and the energy as an RMS per
+landmark, both in the fitted head's eye distances), which flag a one-frame shot that landed in a
+wrong minimum."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ torch = pytest.importorskip("torch")
 
 from nodegraph import Camera, Landmarks2D, ParamSequence, run_node  # noqa: E402
 from nodes.fit import FlagFailures  # noqa: E402
-from nodes.fit.output_nodes import FIT_FAILURE_REASONS, MAX_REPROJECTION, projected_landmarks68, reprojection_error  # noqa: E402,E501
+from nodes.fit.output_nodes import (FIT_FAILURE_REASONS, MAX_ENERGY_RMS, MAX_REPROJECTION,  # noqa: E402
+                                    LandmarkProjection, energy_rms, projected_landmarks68, reprojection_error)
 from nodes.io.face_model import load_face_model  # noqa: E402
 
 NOISE_PX = 0.3  # per axis, on the synthetic plate landmarks
@@ -34,7 +36,7 @@ def shot():
     camera = Camera.from_fov(256, 256, 30.0)
     k = len(model.expression_names)
     truth = np.concatenate([(FACING @ _rot_y(0.2)).ravel(), [1.0, -2.0, 65.0], np.zeros(k)])[None]
-    pixels, _ = projected_landmarks68(truth, model, camera)
+    pixels = projected_landmarks68(truth, model, camera).pixels
     marks = pixels + np.random.default_rng(0).normal(scale=NOISE_PX, size=pixels.shape)
     lo, hi = marks[0].min(0), marks[0].max(0)
     half, centre = 0.65 * (hi - lo).max(), (lo + hi) / 2
@@ -63,25 +65,35 @@ def _rigid_fit(shot, rot: np.ndarray | None, iterations: int) -> tuple[np.ndarra
 
 
 def _flags(shot, fitted: np.ndarray, energy: float, **params) -> ParamSequence:
-    model, camera, _, marks, _ = shot
+    model, camera, _, marks, boxes = shot
     names = [f"v{i}" for i in range(fitted.shape[1])]
     return run_node(FlagFailures, params, energy=ParamSequence(np.array([[energy]], np.float32), ["energy"]),
                     failed=ParamSequence(np.zeros((1, 1), np.float32), ["failed"]),
                     fitted=ParamSequence(fitted.astype(np.float32), names), model=model, camera=camera,
-                    landmarks=marks)["flags"]
+                    landmarks=marks, boxes=boxes)["flags"]
 
 
-def test_reprojection_error_in_eye_distances():
+def test_reprojection_error_and_energy_rms_in_eye_distances(shot):
     plate = np.zeros((3, 68, 2))
-    plate[:, 45, 0] = 20.0  # eye distance 20 px
-    moved = plate + [3.0, 4.0]  # every point 5 px off: 0.25 eye distances
-    got = reprojection_error(moved, plate, np.full((3, 68), 50.0))
-    np.testing.assert_allclose(got, 0.25)
-    moved[1] = np.nan  # no pose
     depth = np.full((3, 68), 50.0)
+    eye = np.full(3, 20.0)  # eye distance 20 px
+    moved = plate + [3.0, 4.0]  # every point 5 px off: 0.25 eye distances
+    np.testing.assert_allclose(reprojection_error(LandmarkProjection(moved, depth, eye), plate), 0.25)
+    moved[1] = np.nan  # no pose
     depth[2, 7] = -1.0  # one point behind the camera: a pose that cannot be seen
-    got = reprojection_error(moved, plate, depth)
+    got = reprojection_error(LandmarkProjection(moved, depth, eye), plate)
     assert got[0] == pytest.approx(0.25) and np.isnan(got[1]) and got[2] == np.inf
+    # energy 68 * 4^2 256-crop px^2 = 4 crop px per point; a 512 px box: 8 image px = 0.4 eye distances
+    assert energy_rms(np.array([68 * 16.0]), np.array([[0.0, 0.0, 512.0, 512.0]]), np.array([20.0]))[0] == \
+        pytest.approx(0.4)
+    # the fitted head's eye distance does not shrink as it turns: f * |v36 - v45| / depth of their midpoint
+    model, camera, truth, _, _ = shot
+    turned = truth.copy()
+    turned[0, :9] = (FACING @ _rot_y(1.2)).ravel()  # 69 deg
+    b = projected_landmarks68(turned, model, camera)
+    eye_cm = np.linalg.norm(np.subtract(*model.neutral[model.landmarks][[36, 45]]))
+    assert b.eye_px[0] == pytest.approx(camera.fx * eye_cm / b.depth[0, [36, 45]].mean(), rel=1e-6)  # float32 model
+    assert np.linalg.norm(b.pixels[0, 36] - b.pixels[0, 45]) < 0.6 * b.eye_px[0]  # the plate's 2D one does
 
 
 def test_a_one_frame_wrong_minimum_is_flagged_and_a_good_fit_is_not(shot):
@@ -94,17 +106,20 @@ def test_a_one_frame_wrong_minimum_is_flagged_and_a_good_fit_is_not(shot):
     reproj = flags.values[0, flags.names.index("reprojection")]
     # 68 points with N(0, 0.3 px) per axis: RMS distance ~ 0.3 * sqrt(2) = 0.42 px; 3x that, over the eye distance
     assert reproj < 3 * NOISE_PX * np.sqrt(2) / eye < MAX_REPROJECTION
-    assert flags.values[0].tolist()[:1] == [0.0] and flags.values[0, 3] == 0
+    assert flags.values[0, flags.names.index("energy_rms")] < MAX_ENERGY_RMS
+    assert flags.values[0, 0] == 0 and flags.values[0, flags.names.index("reason")] == 0
 
     # a deliberately wrong start (the head turned away from the camera) with a short budget: a wrong minimum
     bad, bad_energy = _rigid_fit(shot, FACING @ _rot_y(np.pi), iterations=2)
     assert np.abs(bad[0, 9:12] - truth[0, 9:12]).max() > 10.0  # truly wrong (cm)
     flags = _flags(shot, bad, bad_energy)
-    failed, ratio, reproj, reason = flags.values[0]
+    failed, ratio, reproj, rms, reason = flags.values[0]
     assert ratio == pytest.approx(1.0)  # one frame: the median check cannot see it
-    assert reproj > MAX_REPROJECTION and failed == 1 and reason == 3
+    assert reproj > MAX_REPROJECTION and rms > MAX_ENERGY_RMS and failed == 1 and reason == 3
     assert FIT_FAILURE_REASONS[3].startswith("landmarks reprojected")
-    off = _flags(shot, bad, bad_energy, max_reprojection=0.0)  # 0 turns the check off
+    only_energy = _flags(shot, bad, bad_energy, max_reprojection=0.0)  # 0 turns a check off
+    assert only_energy.values[0, 0] == 1 and only_energy.values[0, 4] == 4
+    off = _flags(shot, bad, bad_energy, max_reprojection=0.0, max_energy_rms=0.0)
     assert off.values[0, 0] == 0 and off.values[0, 2] == pytest.approx(reproj)
 
 
@@ -113,9 +128,9 @@ def test_the_median_check_and_no_face_keep_their_reasons_and_the_inputs_go_toget
     energy = ParamSequence(np.array([[10.0], [11.0], [100.0], [np.nan]], np.float32), ["energy"])
     failed = ParamSequence(np.array([[0.0], [0.0], [0.0], [1.0]], np.float32), ["failed"])
     flags = run_node(FlagFailures, energy=energy, failed=failed)["flags"]
-    assert flags.names == ["failed", "energy_ratio", "reprojection", "reason"]
-    assert flags.values[:, 0].tolist() == [0, 0, 1, 1] and flags.values[:, 3].tolist() == [0, 0, 2, 1]
-    assert np.isnan(flags.values[:, 2]).all()  # no check without its inputs
+    assert flags.names == ["failed", "energy_ratio", "reprojection", "energy_rms", "reason"]
+    assert flags.values[:, 0].tolist() == [0, 0, 1, 1] and flags.values[:, 4].tolist() == [0, 0, 2, 1]
+    assert np.isnan(flags.values[:, 2:4]).all()  # no check without its inputs
     with pytest.raises(Exception, match="'camera'.*together.*camera, landmarks not connected"):
         run_node(FlagFailures, energy=energy, failed=failed, model=model,
                  fitted=ParamSequence(np.zeros((4, 12 + len(model.expression_names)), np.float32),
