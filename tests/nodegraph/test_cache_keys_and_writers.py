@@ -111,7 +111,11 @@ def test_module_sources_are_found_without_importing(tmp_path):
     finally:
         sys.path.remove(str(root))
     assert {"plugin_static/__init__.py", "plugin_static/node.py", "plugin_static/math/__init__.py",
-            "plugin_static/math/helper.py", "nodegraph/__init__.py", "nodegraph/types.py"} <= set(sources)
+            "plugin_static/math/helper.py", "nodegraph/__init__.py", "nodegraph/node.py",
+            "nodegraph/sequences.py"} <= set(sources)
+    # `from nodegraph import Node, ParamSequence` depends on the modules defining those names,
+    # not on everything nodegraph/__init__.py re-exports (the runner, the cache, ...)
+    assert not {"nodegraph/runner.py", "nodegraph/cache.py", "nodegraph/graph.py"} & set(sources)
 
 
 def test_builtin_node_hash_covers_its_helpers():
@@ -119,6 +123,21 @@ def test_builtin_node_hash_covers_its_helpers():
 
     sources = registry.get("stabilize.ModePursuit").code_sources()
     assert "nodes/stabilize/penalty.py" in sources and "nodes/stabilize/mode_pursuit.py" in sources
+
+
+def test_builtin_node_hash_covers_only_the_modules_it_uses():
+    """A package passed through on the way to a submodule counts by its own source only: a
+    temporal node's key does not change when the generator, a report or the runner is edited."""
+    from nodegraph import registry
+
+    for type_name in ("temporal.Hybrid", "temporal.AdaptiveSmooth", "fit.Expression", "dynamics.RemoveDynamics"):
+        sources = set(registry.get(type_name).code_sources())
+        area = type_name.split(".")[0]
+        assert any(s.startswith(f"nodes/{area}/") for s in sources), type_name
+        assert "nodes/__init__.py" in sources and "nodegraph/node.py" in sources, type_name
+        unused = {s for s in sources if s.startswith(("nodes/synth/", "nodes/report/", "nodes/export/"))
+                  or s in ("nodegraph/runner.py", "nodegraph/cache.py", "nodegraph/dask_run.py", "nodes/_areas.py")}
+        assert not unused, (type_name, unused)
 
 
 # -- 2. writers skipped while their files are intact ---------------------------------------
