@@ -59,7 +59,8 @@ def _plate_crops(plates: list[np.ndarray], box: np.ndarray, seen: np.ndarray, fr
     view did not see the face."""
     import torch
 
-    from ..landmarks.network import MESH_SIZE, crop_and_resize
+    from ..geometry.image import crop_and_resize
+    from ..landmarks.network import MESH_SIZE
 
     b, c = box.shape[:2]
     out = torch.zeros(b, c, MESH_SIZE, MESH_SIZE, 3, device=device)

@@ -12,9 +12,9 @@ torch = pytest.importorskip("torch")
 
 from nodegraph import Camera  # noqa: E402
 from nodes.fit.appearance import estimate_noise  # noqa: E402
-from nodes.fit.views import FitModel, FitViews, crop_intrinsics, render_crops  # noqa: E402
+from nodes.fit.views import FitModel, FitViews, render_crops  # noqa: E402
+from nodes.geometry.image import crop_and_resize, crop_intrinsics  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
-from nodes.landmarks.network import crop_and_resize  # noqa: E402
 from nodes.render.appearance import default_albedo, default_sh, visible_faces  # noqa: E402
 from nodes.render.renderer import render_mesh  # noqa: E402
 

@@ -11,7 +11,8 @@ pytest.importorskip("tflite")
 
 from nodes.landmarks.correspondence import MEDIAPIPE_TO_68, inter_ocular_distance, mediapipe_to_68  # noqa: E402
 from nodes.landmarks.heatmap import HeatmapLandmarks, soft_argmax_patch  # noqa: E402
-from nodes.landmarks.network import (FACE_DETECTOR_MODEL, FACE_LANDMARK_MODEL, crop_and_resize,  # noqa: E402
+from nodes.geometry.image import crop_and_resize  # noqa: E402
+from nodes.landmarks.network import (FACE_DETECTOR_MODEL, FACE_LANDMARK_MODEL,  # noqa: E402
                                      decode_detections, detect_faces, face_landmarks, load_face_detector,
                                      load_face_mesh, mediapipe_path, ssd_anchors, weighted_nms)
 from nodes.landmarks.tflite_torch import TfliteModule, read_tflite  # noqa: E402
