@@ -21,6 +21,15 @@ again in the crop of its own points (`read_disagreement` at most `max_disagreeme
 the next detection in the order of the choice is tried, and the frame fails with a reason
 (`nodes.landmarks.tracking.FAILURE_REASONS`) when none is left.
 
+Blurred, noisy footage: where nothing is confirmed, detection and confirmation run once more on
+the frame sharpened (`sharpen`, an unsharp mask of `SHARPEN_SIGMA_PX` and `SHARPEN_AMOUNT`), and
+a face found there is followed in sharpened frames until it is lost. On `bench/detect_faces.py
+--only-check` this read the astronaut at a 25 px eye distance blurred by 3 px (1080p and 4K) and
+rolled 90 deg with noise, where the detector found nothing or the reads disagreed; a contrast
+stretch, tried too, read wrong faces 2.7 to 4.6 eye distances away on dark and small blurred
+frames and is not used. No face was read on 18 face-free skimage photos, plain, dark, blurred or
+noisy, with or without it.
+
 Frames are (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded; pixels as in
 `nodes.landmarks.network`. This module imports torch at the top: import it from node `run()`
 methods only.
@@ -39,7 +48,8 @@ from .network import (PYRAMID_MIN_SCORE, detect_all_faces, eye_roll, face_landma
                       load_face_mesh, points_roll, square_box, upright_face_landmarks)
 from .tracking import FAILURE_REASONS, FaceChoice, choose_face, landmark_crop, refind_face
 
-__all__ = ["FAILURE_REASONS", "TrackedFaces", "track_faces", "crop_movement", "predict_crop", "read_disagreement"]
+__all__ = ["FAILURE_REASONS", "TrackedFaces", "track_faces", "crop_movement", "predict_crop", "read_disagreement",
+           "sharpen", "SHARPEN_SIGMA_PX", "SHARPEN_AMOUNT", "LOOKS", "unturn_faces"]
 
 
 
@@ -62,6 +72,67 @@ class TrackedFaces(NamedTuple):
     detected: np.ndarray
     iris: np.ndarray
     rereads: np.ndarray
+
+
+SHARPEN_SIGMA_PX = 3.0
+"""Width of the unsharp mask of the second detection pass, frame pixels (`sharpen`)."""
+SHARPEN_AMOUNT = 3.0
+"""Strength of that unsharp mask: the frame plus this times its difference from its blur. Of
+(sigma, amount) = (2, 1.5) and (3, 3) on the failures of `bench/detect_faces.py --only-check`,
+(3, 3) read 3 astronaut frames within 7% of the eye distance, (2, 1.5) one."""
+
+
+def sharpen(image: torch.Tensor, sigma_px: float = SHARPEN_SIGMA_PX, amount: float = SHARPEN_AMOUNT) -> torch.Tensor:
+    """Unsharp mask: `image + amount (image - blur(image))`, clipped to [0, 1].
+
+    Args:
+        image: (B, H, W, 3) float RGB in [0, 1].
+        sigma_px: the Gaussian blur's standard deviation, pixels (edges replicated, 4 sigma wide).
+        amount: how much of the detail (image minus blur) is added.
+    Returns:
+        (B, H, W, 3), same dtype and device.
+    """
+    from ..geometry.image import gaussian_kernel, separable_filter
+
+    kernel = gaussian_kernel(sigma_px, dtype=image.dtype, device=image.device, truncate=4.0)
+    return (image + amount * (image - separable_filter(image, kernel))).clamp(0.0, 1.0)
+
+
+LOOKS = ((False, 0), (False, 1), (False, 3), (True, 0), (True, 1), (True, 3))
+"""The detection passes of a frame where no face is confirmed, in order: (sharpened, quarter turns
+counter-clockwise). BlazeFace short range misses a face rolled 90 deg when it is small (the
+astronaut at a 25 px eye distance in 1080p rolled 90 deg: nothing found upright, score 0.90 in
+the frame turned a quarter back). A face found in a turned frame is taken only when its points'
+roll lies within 45 deg of the turn (each look covers its own quadrant of rolls)."""
+
+
+def unturn_faces(faces, turn: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boxes (N, 4), keypoints (N, 6, 2) and scores (N,) of `faces` found in a frame turned by
+    `turn` quarter turns counter-clockwise (`torch.rot90` / `np.rot90`), in the unturned frame's
+    pixels (`size`: its (H, W)).
+
+    Example:
+        >>> from nodes.landmarks.network import Faces
+        >>> f = Faces(np.array([[1.0, 2.0, 3.0, 5.0]]), np.zeros((1, 6, 2)), np.array([0.9]))
+        >>> unturn_faces(f, 1, (10, 20))[0][0].tolist()  # the turned frame is 20 x 10
+        [14.0, 1.0, 17.0, 3.0]
+    """
+    height, width = size
+    boxes, keypoints = np.asarray(faces.boxes, np.float64), np.asarray(faces.keypoints, np.float64)
+    if turn % 4 == 0 or not len(boxes):
+        return boxes.reshape(-1, 4), keypoints.reshape(-1, 6, 2), np.asarray(faces.scores).reshape(-1)
+
+    def back(p: np.ndarray) -> np.ndarray:  # (..., 2) turned-frame pixels -> frame pixels
+        x, y = p[..., 0], p[..., 1]
+        if turn % 4 == 1:  # turned[i, j] = frame[j, W - 1 - i]
+            return np.stack([width - 1 - y, x], -1)
+        if turn % 4 == 3:  # turned[i, j] = frame[H - 1 - j, i]
+            return np.stack([y, height - 1 - x], -1)
+        return np.stack([width - 1 - x, height - 1 - y], -1)
+
+    corners = back(boxes.reshape(-1, 2, 2))
+    return (np.concatenate([corners.min(1), corners.max(1)], -1), back(keypoints),
+            np.asarray(faces.scores).reshape(-1))
 
 
 ROLL_TRIES = (0.0, np.pi / 4, -np.pi / 4)
@@ -116,7 +187,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 refind_frames: int = 30, reread: float = 0.05, max_rereads: int = 2,
                 velocity: float = 1.0, max_candidates: int = 3,
                 max_disagreement: float = 0.15, roll_passes: int = 3, with_iris: bool = True,
-                progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
+                enhance: bool = True, quarter_turns: bool = True, progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
     """Follow the chosen face through `frames` (see the module docstring).
 
     Args:
@@ -136,6 +207,10 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
             the crop of its points; above it the face mesh is not sure of the face (reason 4).
         roll_passes: face-mesh passes that re-turn a detection's crop (`upright_face_landmarks`).
         with_iris: run the iris network (`iris` stays NaN without).
+        enhance: where nothing is confirmed, detect again in the frame sharpened (`sharpen`) and
+            follow a face found there in sharpened frames.
+        quarter_turns: where nothing is confirmed, detect again in the frame turned a quarter
+            each way (`LOOKS`), the points read in the frame as it is.
         progress: called with (fraction done, message).
     Returns:
         TrackedFaces.
@@ -157,9 +232,52 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
         points, presence = face_landmarks(image, box[None], mesh, np.array([roll]))
         return points[0].double().cpu().numpy(), float(presence[0])
 
+    def detect(image: torch.Tensor, f: int, refind: bool,
+               turn: int = 0) -> tuple[tuple[np.ndarray, float, np.ndarray, float] | None, int]:
+        """Detect (in the frame turned `turn` quarter turns), choose and confirm a face in one
+        frame: ((points, presence, crop, roll) or None, reason)."""
+        turned = torch.rot90(image, turn, dims=(1, 2)) if turn else image
+        faces = detect_all_faces(turned, detector, min_score=min_score, iou=iou, min_face_px=min_face_px,
+                                 pyramid_min_score=pyramid_min_score)[0]
+        boxes, keypoints, scores = unturn_faces(faces, turn, (height, width))
+        reason = 3 if refind and len(boxes) else 1
+        for _ in range(max_candidates):  # a detection the face mesh rejects: the next one chosen
+            pick = refind_face(boxes, last_box) if refind else choose_face(boxes, scores, face, (height, width))
+            if pick < 0:
+                break
+            box = square_box(boxes[pick], box_scale)
+            first_roll = float(eye_roll(keypoints[pick]))
+            for extra in ROLL_TRIES:  # the detector's roll can be far off (a 90 deg roll reads ~40)
+                pts, pres, turned = upright_face_landmarks(image, box[None], mesh,
+                                                           np.array([first_roll + extra]), roll_passes)
+                if float(pres[0]) >= min_presence:
+                    break
+            out.presence[f] = max(float(pres[0]), out.presence[f])
+            if float(pres[0]) >= min_presence:  # read again in the crop of its own points: agree?
+                first = pts[0].double().cpu().numpy()
+                roll = float(points_roll(first))
+                again_crop = landmark_crop(first, roll, crop_scale)
+                again, again_presence = read(image, again_crop, roll)
+                # a face found in the turned frame is upright there: its points' roll within 45 deg
+                # of the turn (the sharpened, turned blurred camera man read 29 deg at turn 90: 123% off)
+                off_turn = abs((roll - turn * np.pi / 2 + np.pi) % (2 * np.pi) - np.pi)
+                if (again_presence >= min_presence and read_disagreement(first, again) <= max_disagreement
+                        and (turn == 0 or off_turn <= np.pi / 4)):
+                    return (again, again_presence, again_crop, roll), 0
+                reason = 4
+            else:
+                reason = 2
+            if not isinstance(face, str) and not refind:  # an index or a box names one detection
+                break
+            keep = np.arange(len(boxes)) != pick
+            boxes, scores, keypoints = boxes[keep], scores[keep], keypoints[keep]
+        return None, reason
+
+    sharpened = False  # the followed face was found in the sharpened frame: follow it there
     with torch.no_grad():
         for f in range(count):
-            image = torch.as_tensor(frames[f:f + 1], device=device)
+            plain = torch.as_tensor(frames[f:f + 1], device=device)
+            image = sharpen(plain) if sharpened else plain
             points = None
             if crop is not None:  # follow: read in the crop predicted from the previous frames' points
                 if before is not None:
@@ -177,42 +295,20 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                     out.rereads[f] += 1
                 if presence < min_presence:
                     points, latest = None, None
-            if points is None:  # detect
+            if points is None:  # detect: in the frame, then (nothing confirmed) in the frame sharpened
                 out.detected[f] = True
-                faces = detect_all_faces(image, detector, min_score=min_score, iou=iou, min_face_px=min_face_px,
-                                         pyramid_min_score=pyramid_min_score)[0]
-                boxes, scores, keypoints = faces.boxes, faces.scores, faces.keypoints
                 refind = last_box is not None and lost_for < refind_frames
-                reason = 3 if refind and len(boxes) else 1
-                for _ in range(max_candidates):  # a detection the face mesh rejects: the next one chosen
-                    pick = (refind_face(boxes, last_box) if refind else
-                            choose_face(boxes, scores, face, (height, width)))
-                    if pick < 0:
+                sharpened, found, reason = False, None, 1
+                for look in LOOKS:  # the frame, turned a quarter each way, sharpened: until one is confirmed
+                    if (look[0] and not enhance) or (look[1] and not quarter_turns):
+                        continue
+                    image = sharpen(plain) if look[0] else plain
+                    found, look_reason = detect(image, f, refind, look[1])
+                    if found is not None:
+                        sharpened = look[0]
                         break
-                    box = square_box(boxes[pick], box_scale)
-                    first_roll = float(eye_roll(keypoints[pick]))
-                    for extra in ROLL_TRIES:  # the detector's roll can be far off (a 90 deg roll reads ~40)
-                        pts, pres, turned = upright_face_landmarks(image, box[None], mesh,
-                                                                   np.array([first_roll + extra]), roll_passes)
-                        if float(pres[0]) >= min_presence:
-                            break
-                    out.presence[f] = max(float(pres[0]), out.presence[f])
-                    if float(pres[0]) >= min_presence:  # read again in the crop of its own points: agree?
-                        first = pts[0].double().cpu().numpy()
-                        roll = float(points_roll(first))
-                        again_crop = landmark_crop(first, roll, crop_scale)
-                        again, again_presence = read(image, again_crop, roll)
-                        if again_presence >= min_presence and read_disagreement(first, again) <= max_disagreement:
-                            points, presence, crop, crop_roll = again, again_presence, again_crop, roll
-                            break
-                        reason = 4
-                    else:
-                        reason = 2
-                    if not isinstance(face, str) and not refind:  # an index or a box names one detection
-                        break
-                    keep = np.arange(len(boxes)) != pick
-                    boxes, scores, keypoints = boxes[keep], scores[keep], keypoints[keep]
-                if points is None:
+                    reason = max(reason, look_reason)  # the most informative: a face seen but not read
+                if found is None:
                     out.reasons[f] = reason
                     crop, latest, before, lost_for = None, None, None, lost_for + 1
                     if last_box is not None and lost_for >= refind_frames:
@@ -220,6 +316,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                     if progress is not None:
                         progress((f + 1) / count, "following the face")
                     continue
+                points, presence, crop, crop_roll = found
             out.boxes[f], out.rolls[f], out.points[f], out.presence[f] = crop, crop_roll, points, presence
             out.failed[f] = False
             if iris_net is not None:

@@ -299,7 +299,7 @@ class TrackFaces(Node):
     """
 
     type_name = "landmarks.TrackFaces"
-    version = 1
+    version = 2
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -324,6 +324,15 @@ class TrackFaces(Node):
                                  "eye line of the points found (as `landmarks.FaceLandmarks`).")
         with_iris: bool = Param(True, description="Run the iris model on both eyes of every frame read (`iris` "
                                 "NaN without): it costs about as much as the face mesh again (bench/detect_faces.py).")
+        enhance: bool = Param(True, description="Where no face is confirmed in a frame, detect and confirm once "
+                              "more in the frame sharpened (unsharp mask, sigma 3 px, amount 3) and follow a face "
+                              "found there in sharpened frames (it reads small blurred faces the plain frame does "
+                              "not: bench/detect_faces.py --only-check); costs up to three more detections "
+                              "(upright and turned) on frames that fail.")
+        quarter_turns: bool = Param(True, description="Where no face is confirmed in a frame (or its sharpened "
+                                    "copy), detect again in it turned a quarter each way (the short-range "
+                                    "detector misses small faces rolled 90 deg); the points are read in the frame "
+                                    "as it is. Costs two more detections on frames that fail.")
 
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the networks).")
     boxes = Out(ParamSequence, doc="x0 y0 x1 y1: the square crop the points were read in, pixels (turned by "
@@ -347,7 +356,7 @@ class TrackFaces(Node):
                           iou=p.iou, min_face_px=p.min_face_px, pyramid_min_score=p.pyramid_min_score,
                           box_scale=p.box_scale, min_presence=p.min_presence, refind_frames=p.refind_frames,
                           reread=p.reread, velocity=p.velocity, roll_passes=p.roll_passes, with_iris=p.with_iris,
-                          progress=self.progress)
+                          enhance=p.enhance, quarter_turns=p.quarter_turns, progress=self.progress)
         ok = (~out.failed).astype(np.float32)
         confidence = (out.presence * ok).astype(np.float32)[:, None]
         points = out.points.astype(np.float32)
