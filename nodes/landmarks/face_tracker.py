@@ -21,14 +21,16 @@ again in the crop of its own points (`read_disagreement` at most `max_disagreeme
 the next detection in the order of the choice is tried, and the frame fails with a reason
 (`nodes.landmarks.tracking.FAILURE_REASONS`) when none is left.
 
-Blurred, noisy footage: where nothing is confirmed, detection and confirmation run once more on
-the frame sharpened (`sharpen`, an unsharp mask of `SHARPEN_SIGMA_PX` and `SHARPEN_AMOUNT`), and
-a face found there is followed in sharpened frames until it is lost. On `bench/detect_faces.py
---only-check` this read the astronaut at a 25 px eye distance blurred by 3 px (1080p and 4K) and
-rolled 90 deg with noise, where the detector found nothing or the reads disagreed; a contrast
-stretch, tried too, read wrong faces 2.7 to 4.6 eye distances away on dark and small blurred
-frames and is not used. No face was read on 18 face-free skimage photos, plain, dark, blurred or
-noisy, with or without it.
+Second looks (`LOOKS`): where nothing is confirmed, detection and confirmation run again on the
+frame turned a quarter each way (`quarter_turns`; the short-range detector misses small faces
+rolled 90 deg), then on the frame sharpened (`enhance`; `sharpen`, an unsharp mask of
+`SHARPEN_SIGMA_PX` and `SHARPEN_AMOUNT`), upright and turned; a face found sharpened is followed
+in sharpened frames until it is lost. On `bench/detect_faces.py --only-check` they read the
+astronaut at a 25 px eye distance blurred by 3 px (1080p and 4K: sharpened), rolled 90 deg with
+noise (turned) and at a 25 px eye distance rolled 90 deg, dark, beside a smaller copy (turned),
+where the detector found nothing or the reads disagreed. A contrast stretch, tried too, read
+wrong faces 2.7 to 4.6 eye distances away on dark and small blurred frames and is not used. No
+face was read on 18 face-free skimage photos, plain, dark, blurred or noisy (0 of 72 frames).
 
 Frames are (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded; pixels as in
 `nodes.landmarks.network`. This module imports torch at the top: import it from node `run()`
