@@ -164,21 +164,23 @@ class ReferenceFrame(Node):
     """Pick one frame of a mesh sequence as the (unchunked) reference of the skull frame."""
 
     type_name = "rigid.ReferenceFrame"
-    version = 1
+    version = 2
     kind = SEQUENCE
 
     class Params(NodeParams):
-        frame: int = Param(0, ge=0, description="Absolute index of the reference frame (frames); "
-                                                "must lie in the run's frames.")
+        frame: int | None = Param(None, ge=0, description="Absolute index of the reference frame (frames); "
+                                  "None = the run's first frame, so a run of any frames a:b has its "
+                                  "reference. A set frame must lie in the run's frames.")
 
     mesh = In(MeshSequence, doc="Mesh sequence to pick the frame from.")
     reference = Out(MeshSequence, per_frame=False, doc="The picked frame (1 frame).")
 
     def run(self, mesh: MeshSequence) -> dict:
-        frame = self.params.frame
+        frame = self.frames.start if self.params.frame is None else self.params.frame
         if frame not in self.frames:
             raise InputError("frame", f"expected a frame in {self.frames.start}.."
-                                      f"{self.frames.stop - 1} (the run's frames), found {frame}")
+                                      f"{self.frames.stop - 1} (the run's frames; or null for the "
+                                      f"run's first frame), found {frame}")
         index = frame - self.frames.start
         one = mesh.slice_frames(index, index + 1)
         return {"reference": dataclasses.replace(one, vertices=one.vertices.copy())}

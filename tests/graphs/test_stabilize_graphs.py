@@ -51,6 +51,22 @@ def test_stabilize_graph_runs_from_the_command_line(performance, tmp_path):
     assert "2 executed" in proc.stdout + proc.stderr
 
 
+def test_stabilize_graph_runs_a_range_that_does_not_start_at_frame_0(performance, tmp_path):
+    capture = tmp_path / "shot.npz"
+    save_mesh_sequence(str(capture), performance.capture, range(120))
+    output = tmp_path / "part.npz"
+    proc = subprocess.run([sys.executable, "-m", "nodegraph.cli", "run", str(GRAPHS / "stabilize.json"),
+                           f"capture={capture}", f"output={output}", f"report={tmp_path / 'report'}",
+                           "--frames", "40:70", "--no-cache", "--progress", "none"],
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with np.load(output) as saved:
+        rigid, vertices = saved["rigid"], saved["vertices"]
+    assert rigid.shape == (30, 4, 4)
+    world = np.einsum("fij,fvj->fvi", rigid[:, :3, :3], vertices) + rigid[:, None, :3, 3]
+    np.testing.assert_allclose(world, performance.capture.vertices[40:70], atol=1e-3)
+
+
 def test_stabilize_graph_missing_capture_exit_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "nodegraph.cli", "run", str(GRAPHS / "stabilize.json"),
                            f"capture={tmp_path / 'missing.npz'}", "--no-cache"], capture_output=True, text=True,

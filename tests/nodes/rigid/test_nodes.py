@@ -98,6 +98,12 @@ def test_reference_frame_picks_an_absolute_frame():
     assert out.groups.keys() == mesh.groups.keys() and out.fps == 24.0
 
 
+def test_reference_frame_defaults_to_the_runs_first_frame():
+    mesh, _, _, _ = _capture(5)
+    out = run_node(ReferenceFrame, {}, frames=range(5, 10), mesh=mesh)["reference"]
+    np.testing.assert_array_equal(out.vertices, mesh.vertices[0:1])
+
+
 def test_reference_frame_rejects_a_frame_outside_the_run():
     mesh, _, _, _ = _capture(5)
     with pytest.raises(NodeError, match=r"rigid.ReferenceFrame.*'frame': expected a frame in "
