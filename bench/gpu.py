@@ -57,7 +57,8 @@ def bench_render(device: str, repeat: int) -> list[tuple[str, float, float, str]
     """(row, ms on CPU, ms on `device`, agreement text) for the render at 256^2."""
     from nodes.io.face_model import load_face_model
     from nodes.render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, visible_faces
-    from nodes.render.renderer import render_mesh, triangle_adjacency
+    from nodes.geometry.mesh import triangle_adjacency
+    from nodes.render.renderer import render_mesh
 
     model = load_face_model()
     faces = visible_faces(model.faces, model.neutral.shape[0])

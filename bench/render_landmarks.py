@@ -40,7 +40,8 @@ def main() -> None:
     from nodes.landmarks.network import (detect_faces, face_landmarks, load_face_detector,
                                          load_face_mesh, srgb_encode)
     from nodes.render.appearance import DEFAULT_LIGHT, default_albedo, default_sh, visible_faces
-    from nodes.render.renderer import render_mesh, triangle_adjacency
+    from nodes.geometry.mesh import triangle_adjacency
+    from nodes.render.renderer import render_mesh
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     print(f"torch {torch.__version__}, {args.threads} threads, devices: {devices}"

@@ -25,7 +25,8 @@ from ..geometry.camera import project_points_torch
 from ..geometry.image import crop_intrinsics, crop_to_image, image_to_crop, sample_bilinear
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from ..landmarks.network import MESH_SIZE, srgb_encode
-from ..render.renderer import render_mesh, triangle_adjacency
+from ..geometry.mesh import triangle_adjacency
+from ..render.renderer import render_mesh
 
 __all__ = ["FitModel", "FitViews", "Anchors", "at_anchors", "crop_intrinsics", "crop_to_image", "image_to_crop",
            "render_crops", "network_points", "landmark_anchors", "anchors_from_render"]

@@ -1,12 +1,13 @@
 """Mesh geometry shared by the areas: area-weighted vertex normals, edges of a triangle mesh (or a
-k-nearest-neighbour graph of a point set) and the uniform graph Laplacian over them. numpy / scipy;
+k-nearest-neighbour graph of a point set), the uniform graph Laplacian over them, and each
+triangle's neighbours across its edges. numpy / scipy;
 pure functions. (The renderer's differentiable torch normals live in nodes/render/renderer.py.)"""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["vertex_normals", "vertex_neighbours", "uniform_laplacian"]
+__all__ = ["vertex_normals", "vertex_neighbours", "uniform_laplacian", "triangle_adjacency"]
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -68,3 +69,35 @@ def uniform_laplacian(edges: np.ndarray, count: int):
     degree = np.asarray(adj.sum(axis=1)).ravel()
     inv = sparse.diags(np.where(degree > 0, 1.0 / np.maximum(degree, 1e-12), 0.0))
     return (sparse.identity(count, format="csr") - inv @ adj).tocsr()
+
+
+def triangle_adjacency(faces: np.ndarray) -> np.ndarray:
+    """The neighbour of each triangle across each of its edges.
+
+    Args:
+        faces: (T, 3) int vertex indices.
+    Returns:
+        (T, 3) int64: entry [t, i] is the triangle sharing the edge opposite corner i (corners
+        i + 1 and i + 2, mod 3), or -1 on a boundary. On a non-manifold edge (more than two
+        triangles) the first two in face order are paired and the others see -1.
+
+    Example:
+        >>> triangle_adjacency(np.array([[0, 1, 2], [2, 1, 3]])).tolist()
+        [[1, -1, -1], [-1, -1, 0]]
+    """
+    faces = np.asarray(faces, np.int64)
+    t = len(faces)
+    a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])
+    key = np.minimum(a, b) * (int(faces.max(initial=0)) + 1) + np.maximum(a, b)
+    slot = np.arange(3 * t)  # slot s: triangle s % t, edge opposite corner s // t
+    order = np.lexsort((slot, key))
+    ks = key[order]
+    adjacency = np.full(3 * t, -1, np.int64)
+    first = np.ones(len(ks), bool)
+    first[1:] = ks[1:] != ks[:-1]
+    pair = np.flatnonzero(first[:-1] & (ks[1:] == ks[:-1]))  # the first two slots of each edge
+    s0, s1 = order[pair], order[pair + 1]
+    adjacency[s0] = s1 % t
+    adjacency[s1] = s0 % t
+    return adjacency.reshape(3, t).T.copy()

@@ -186,14 +186,17 @@ def default_sh() -> np.ndarray:
 
 def model_appearance(model: FaceModel, value: Any | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """albedo, sh, background, hidden faces of an appearance JSON value (`parse_appearance`), or of
-    the default appearance when `value` is None (ICT eye shells and lashes hidden).
+    the default appearance when `value` is None (ICT eye shells and lashes hidden when the model
+    is the whole head, as `visible_faces`).
 
     Raises:
         ValueError: as `parse_appearance`.
     """
     if value is None:
-        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32),
-                hidden_faces(model.faces))
+        faces = np.asarray(model.faces, np.int64)
+        drawn = visible_faces(faces, model.neutral.shape[0])
+        hidden = (hidden_faces(faces) if len(drawn) < len(faces) else np.zeros(0, np.int64))
+        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32), hidden)
     return parse_appearance(value, model.neutral.shape[0], len(model.faces))
 
 

@@ -86,7 +86,8 @@ class Render(Node):
             background: ImageSequence | None = None) -> dict[str, ImageSequence]:
         import torch
 
-        from .renderer import render_mesh, triangle_adjacency
+        from ..geometry.mesh import triangle_adjacency
+        from .renderer import render_mesh
 
         p = self.params
         try:

@@ -203,7 +203,7 @@ def silhouette_pairs(triangle: np.ndarray, zbuffer: np.ndarray, pix: np.ndarray,
         triangle: (B, H, W) int visible triangle per pixel, -1 none (`rasterize_triangles`).
         zbuffer: (B, H, W) float camera z, +inf none.
         pix: (B, V, 2) float projected vertices, pixels.
-        faces: (T, 3) int; adjacency: (T, 3) int (`renderer.triangle_adjacency`).
+        faces: (T, 3) int; adjacency: (T, 3) int (`geometry.mesh.triangle_adjacency`).
         steps: most triangles walked.
     Returns:
         occluder, far: (M,) int64 flat pixel indices into (B, H, W);

@@ -48,9 +48,10 @@ from torch import Tensor
 
 from ..geometry.camera import project_points_torch
 from ..geometry.image import box_downsample
+from ..geometry.mesh import triangle_adjacency
 from .raster import rasterize_triangles, silhouette_pairs
 
-__all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals", "triangle_adjacency",
+__all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals",
            "screen_barycentrics", "render_mesh", "SH_BAND_FACTORS"]
 
 SH_BAND_FACTORS = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
@@ -226,38 +227,6 @@ def vertex_normals(vertices: Tensor, faces: Tensor, eps: float = 1e-12) -> Tenso
     faces = torch.as_tensor(faces, device=vertices.device).long()
     normals = _NormalSums.apply(vertices, _incidence(faces, vertices.shape[1], vertices.dtype))
     return normals / normals.norm(dim=-1, keepdim=True).clamp_min(eps)
-
-
-def triangle_adjacency(faces: np.ndarray) -> np.ndarray:
-    """The neighbour of each triangle across each of its edges.
-
-    Args:
-        faces: (T, 3) int vertex indices.
-    Returns:
-        (T, 3) int64: entry [t, i] is the triangle sharing the edge opposite corner i (corners
-        i + 1 and i + 2, mod 3), or -1 on a boundary. On a non-manifold edge (more than two
-        triangles) the first two in face order are paired and the others see -1.
-
-    Example:
-        >>> triangle_adjacency(np.array([[0, 1, 2], [2, 1, 3]])).tolist()
-        [[1, -1, -1], [-1, -1, 0]]
-    """
-    faces = np.asarray(faces, np.int64)
-    t = len(faces)
-    a = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
-    b = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])
-    key = np.minimum(a, b) * (int(faces.max(initial=0)) + 1) + np.maximum(a, b)
-    slot = np.arange(3 * t)  # slot s: triangle s % t, edge opposite corner s // t
-    order = np.lexsort((slot, key))
-    ks = key[order]
-    adjacency = np.full(3 * t, -1, np.int64)
-    first = np.ones(len(ks), bool)
-    first[1:] = ks[1:] != ks[:-1]
-    pair = np.flatnonzero(first[:-1] & (ks[1:] == ks[:-1]))  # the first two slots of each edge
-    s0, s1 = order[pair], order[pair + 1]
-    adjacency[s0] = s1 % t
-    adjacency[s1] = s0 % t
-    return adjacency.reshape(3, t).T.copy()
 
 
 def screen_barycentrics(corners: Tensor, points: Tensor) -> Tensor:

@@ -38,7 +38,7 @@ class RenderScene:
     """What the renders of `optical_energies` need (float32 tensors on the solve's device).
 
     Attributes:
-        faces: (T, 3) int64 triangles drawn; adjacency: `triangle_adjacency(faces)`.
+        faces: (T, 3) int64 triangles drawn; adjacency: `geometry.mesh.triangle_adjacency(faces)`.
         albedo: (1, V, 3) linear; sh: (1, 9, 3); background: (3,) linear.
         settings: the dense flow's settings (those of the plate flow).
     """
@@ -53,7 +53,7 @@ class RenderScene:
     @classmethod
     def build(cls, faces: np.ndarray, albedo: np.ndarray, sh: np.ndarray, background: np.ndarray,
               settings: FlowSettings, device: str = "cpu") -> "RenderScene":
-        from ..render.renderer import triangle_adjacency
+        from ..geometry.mesh import triangle_adjacency
 
         f = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
         faces = np.asarray(faces, np.int64)

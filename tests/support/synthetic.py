@@ -64,7 +64,8 @@ def render_plates(vertices: Any, faces: np.ndarray, camera: Camera, albedo: Any,
     """
     import torch
 
-    from nodes.render.renderer import render_mesh, triangle_adjacency
+    from nodes.geometry.mesh import triangle_adjacency
+    from nodes.render.renderer import render_mesh
 
     verts = torch.as_tensor(vertices, device=device)
     count = verts.shape[0]

@@ -10,8 +10,9 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("numba")
 
 from nodes.render.raster import rasterize_triangles, silhouette_pairs  # noqa: E402
+from nodes.geometry.mesh import triangle_adjacency  # noqa: E402
 from nodes.render.renderer import (render_mesh, screen_barycentrics, sh_basis, sh_from_lights,  # noqa: E402
-                                   triangle_adjacency, vertex_normals)
+                                   vertex_normals)
 
 
 def _icosphere(subdivisions: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
