@@ -70,7 +70,7 @@ class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
     type_name = "fit.EstimateAppearance"
-    version = 7  # 7: expression weights bounded by the solver's active set, the plate read bicubically (issue 30)
+    version = 6
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -221,7 +221,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 7  # 7: weights bounded by geometry.lm's active set, the plate read bicubically (issue 30)
+    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = SEQUENCE
     resources = {"gpu": 1}
 

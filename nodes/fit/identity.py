@@ -125,15 +125,9 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
         return torch.cat([xf.reshape(-1), i])[None]
 
     n = b * n_p + n_i
-    inf = torch.full((b, 6), float("inf"), dtype=dt, device=dev)
-    ones = torch.ones(b, n_p - 6, dtype=dt, device=dev)
-    free_identity = torch.full((n_i,), float("inf"), dtype=dt, device=dev)
-    lower = torch.cat([torch.cat([-inf, 0 * ones], 1).reshape(-1), -free_identity])  # weights in [0, 1]
-    upper = torch.cat([torch.cat([inf, ones], 1).reshape(-1), free_identity])
     with torch.no_grad():
         out = levenberg_marquardt(all_residuals, normal, torch.cat([x.reshape(-1), ident])[None],
-                                  iterations=iterations, schedule=STAGE_SCHEDULE, relinearize=relinearize,
-                                  lower=lower, upper=upper)
+                                  iterations=iterations, schedule=STAGE_SCHEDULE, relinearize=relinearize)
     x, ident = split(out.x)
     return in_dtype((PoseState(now["rot"], x[:, 3:6], now["weights"].clamp(0, 1)), ident), out_dt)
 

@@ -107,7 +107,7 @@ class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 7  # 7: weights bounded by geometry.lm's active set, the plate read bicubically (issue 30)
+    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _FitParams
@@ -144,7 +144,7 @@ class Expression(Node):
     """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
 
     type_name = "fit.Expression"
-    version = 7  # 7: weights bounded by geometry.lm's active set, the plate read bicubically (issue 30)
+    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _ExpressionParams

@@ -22,9 +22,7 @@ through the network). `refine_backprop` is the paper's literal solver: gradient 
 `|N(F*) - N(F(x_R))|^2` backpropagated through the network and the renderer.
 
 Rotation is `R = exp([omega]) R0` (axis-angle `omega`, radians, about the model's origin),
-translation `t` in cm; weights are kept in [0, 1] by the solver's bounds (`nodes.geometry.lm`'s
-active set: a stiff penalty past the bounds made the steps stall wherever a weight crossed 0,
-at a point that followed the last bits of the input, issue 30).
+translation `t` in cm; weights are kept in [0, 1] by a stiff quadratic penalty.
 Torch is imported at the top: import this module from node `run()` methods only.
 """
 
@@ -48,6 +46,9 @@ from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors
 
 __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
            "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]
+
+BOUND_PENALTY = 1e4
+"""Weight of the quadratic penalty that keeps expression weights in [0, 1]."""
 
 SOLVE_DTYPE = torch.float64
 """Precision of the Levenberg-Marquardt solves (residuals, Jacobians, normal equations). In float32
@@ -183,9 +184,9 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
     """A stage's energy as a sum of squares: x (B, 6 + S) -> residuals (B, M).
 
     x = [omega (3), t (3) cm, the S active weights]; `R = exp([omega]) rot0`. The residuals are,
-    in order: data (C*L*2), edges (C*E*2, if mu > 0), prior (S), rigid prior (12, if any), so
-    that `sum r^2` is `landmark_energy` + the prior + the rigid prior of `solve_stage` (the
-    weights' bounds [0, 1] are the solver's). `w_lm` is (L,) or (B, C, L).
+    in order: data (C*L*2), edges (C*E*2, if mu > 0), prior (S), bound penalty (S), rigid
+    prior (12, if any), so that `sum r^2` is `landmark_energy` + the prior + the bound
+    penalty + the rigid prior of `solve_stage`. `w_lm` is (L,) or (B, C, L).
     """
     a, b = EDGES_68[:, 0], EDGES_68[:, 1]
     scale = views.scale
@@ -208,6 +209,7 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
             parts.append(((r[:, :, b] - r[:, :, a]) * ew).flatten(1))
         if n_w:
             parts.append(active * float(prior) ** 0.5)
+            parts.append(((-active).clamp_min(0) + (active - 1).clamp_min(0)) * BOUND_PENALTY ** 0.5)
         if use_rigid_prior:
             k = float(rigid_prior_weight) ** 0.5
             parts.append((trans - rigid_prior.trans) * k)
@@ -225,7 +227,8 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
 
     The landmark rows chain `project_views_jacobian` with the anchored points' derivatives:
     `-[R q]_x` in omega, the identity in t, `R d_s` in active weight s (q the anchored local
-    point, d_s its shape).
+    point, d_s its shape). The bound penalty's rows follow autodiff's convention at the bounds
+    (a weight exactly at 0 counts as below it).
 
     Args:
         neutral, deltas, views, rot0, base_weights, shapes, w_lm, prior, edge_weight,
@@ -263,6 +266,11 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
         diag = torch.arange(n_w, device=dev)
         rows[:, diag, 6 + diag] = float(prior) ** 0.5
         parts.append(rows)
+        active = x[:, 6:]
+        side = (active >= 1).to(dt) - (active <= 0).to(dt)
+        bound = torch.zeros(bsz, n_w, n_all, dtype=dt, device=dev)
+        bound[:, diag, 6 + diag] = side * BOUND_PENALTY ** 0.5
+        parts.append(bound)
     if rigid_prior is not None and rigid_prior_weight > 0:
         k = float(rigid_prior_weight) ** 0.5
         rows = torch.zeros(bsz, 12, n_all, dtype=dt, device=dev)
@@ -376,18 +384,14 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
 
         x = now["x"]
         if n_p:
-            inf = torch.full((6,), float("inf"), dtype=dt, device=dev)
-            ones = torch.ones(len(stage.shapes), dtype=dt, device=dev)
             out = levenberg_marquardt(lambda xf: now["residuals"](xf), normal, x, iterations=iterations,
-                                      schedule=STAGE_SCHEDULE, relinearize=relinearize,
-                                      lower=torch.cat([-inf, 0 * ones])[free_idx],
-                                      upper=torch.cat([inf, ones])[free_idx])
+                                      schedule=STAGE_SCHEDULE, relinearize=relinearize)
             r = out.residuals
         else:
             r = now["residuals"](x)
         rot, trans, weights = now["rot"], now["trans"], now["weights"]
         m_lm = r.shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
-        drop = 12 if rigid_prior is not None and rigid_prior_weight > 0 else 0
+        drop = len(stage.shapes) + (12 if rigid_prior is not None and rigid_prior_weight > 0 else 0)
         kept = torch.cat([r[:, :m_lm - drop], r[:, m_lm:]], 1)  # data + edges + prior + photometric
         e = (kept * kept).sum(1)
     return in_dtype(PoseState(rot, trans, weights.clamp(0.0, 1.0)), out_dt), e.to(out_dt)

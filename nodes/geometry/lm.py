@@ -17,13 +17,7 @@ The schedule (Marquardt 1963, with Nielsen's accept/reject bookkeeping; one for 
   kept) up to `tries` times in one iteration while no element improved;
 - stopping: an element stops when an accepted step lowers its cost by less than `rel_tol`
   relative; the solve stops after `iterations` iterations, when every element has stopped, or
-  (with `stop_when_stuck`) when an iteration's `tries` tries improved no element;
-- bounds (`lower`, `upper`): projected Newton with an active set (Bertsekas 1982): x stays in
-  the box (each trial point is clamped into it), and an unknown at a bound whose gradient
-  points out of the box is held there for the iteration (its row and column of the normal
-  equations taken out). The energy stays smooth in the box; a stiff penalty past a bound
-  instead makes the Gauss-Newton model wrong by the penalty at every step that crosses it, so
-  that the steps shrink to a stall whose position follows the last bits of the input (issue 30).
+  (with `stop_when_stuck`) when an iteration's `tries` tries improved no element.
 
 Each iteration costs one linearization and one to `tries` residual evaluations.
 """
@@ -110,8 +104,7 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
                         normal: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x0: Tensor, *,
                         iterations: int, schedule: LMSchedule = LMSchedule(),
                         retract: Callable[[Tensor, Tensor], Tensor] | None = None,
-                        relinearize: Callable[[Tensor, Tensor], Tensor] | None = None,
-                        lower: Tensor | None = None, upper: Tensor | None = None) -> LMResult:
+                        relinearize: Callable[[Tensor, Tensor], Tensor] | None = None) -> LMResult:
     """Minimize |r_b(x_b)|^2 per batch element by Levenberg-Marquardt (module docstring).
 
     Args:
@@ -130,16 +123,11 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
             step: the caller moves its linearization point (e.g. folds a rotation increment into
             its base rotation and zeroes it in x) and returns the equivalent x; the residuals
             at the returned x must equal those at the given x.
-        lower, upper: (P,) or (B, P) bounds of x (-inf / inf where free), or None: the active-set
-            projection of the module docstring; x0 is clamped into them.
     Returns:
         LMResult (x, residuals, cost, lam, iterations).
     """
     s = schedule
-    bounded = lower is not None or upper is not None
-    lo = torch.full_like(x0, -float("inf")) if lower is None else torch.as_tensor(lower).to(x0).expand_as(x0)
-    hi = torch.full_like(x0, float("inf")) if upper is None else torch.as_tensor(upper).to(x0).expand_as(x0)
-    x = torch.maximum(torch.minimum(x0, hi), lo) if bounded else x0
+    x = x0
     b = x.shape[0]
     r = residuals(x)
     cost = (r * r).sum(1)
@@ -153,17 +141,10 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
         if len(linear) == 3:
             r = linear[2]
             cost = (r * r).sum(1)
-        if bounded:  # hold the unknowns at a bound whose descent direction (-J^T r) leaves the box
-            held = ((x <= lo) & (jtr > 0)) | ((x >= hi) & (jtr < 0))
-            free = (~held).to(jtj.dtype)
-            jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(held.to(jtj.dtype))
-            jtr = jtr * free
         better = torch.zeros_like(running)
         for _try in range(s.tries):
             step = damped_step(jtj, jtr, lam, diag_floor=s.diag_floor, floor=s.floor)
             x_new = x + step if retract is None else retract(x, step)
-            if bounded:
-                x_new = torch.maximum(torch.minimum(x_new, hi), lo)
             r_new = residuals(x_new)
             cost_new = (r_new * r_new).sum(1)
             better = (cost_new < cost) & running
