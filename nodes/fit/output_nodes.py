@@ -309,7 +309,8 @@ class FitReport(Node):
         from ..landmarks.network import load_face_mesh
         from ..landmarks.nodes import network_images, draw_overlay
         from ..render.renderer import render_mesh
-        from .views import crop_to_image, network_points, render_crops
+        from ..geometry.image import crop_to_image
+        from .views import network_points, render_crops
 
         fm = _fit_model(model, appearance, self.device)
         views = _views([landmarks], [boxes], [camera], self.device)

@@ -36,13 +36,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry.image import crop_to_image
 from ..geometry.lm import LMSchedule, levenberg_marquardt
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, _skew, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
                      project_views, project_views_jacobian)
 from .photometric import PhotoSamples, PhotoTerm, photometric_samples
-from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, crop_to_image, landmark_anchors,
-                    network_points, render_crops)
+from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, landmark_anchors, network_points,
+                    render_crops)
 
 __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
            "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]

@@ -9,7 +9,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from nodes.fit.energy import axis_angle_to_rotmat  # noqa: E402
-from nodes.fit.photometric import PhotoSamples, PhotoTerm, gaussian_blur, sample_bilinear  # noqa: E402
+from nodes.fit.photometric import PhotoSamples, PhotoTerm  # noqa: E402
+from nodes.geometry.image import gaussian_blur, sample_bilinear  # noqa: E402
 from nodes.fit.views import FitViews  # noqa: E402
 
 
