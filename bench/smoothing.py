@@ -43,6 +43,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root: tests.support
 
+from tests.support.synthetic import (LANDMARK_FIT_BLINKS, LANDMARK_FIT_FRAMES, landmark_fit_truth,  # noqa: E402
+                                     per_frame_landmark_fit)
+
 
 def curve_rows() -> list[str]:
     from nodes.temporal.adaptive import smooth_curve
@@ -122,62 +125,6 @@ def known_shot_rows(seeds: int = 5, frames: int = 90) -> list[str]:
     return rows
 
 
-FIT_FRAMES = 90
-FIT_BLINKS = (20, 65)  # first frame of each 4-frame blink
-
-
-def _fit_truth(seed: int, shapes: list[str]) -> np.ndarray:
-    """(F, 12 + K) fit layout: a head 47 cm away turning +-3 degrees, smiling slowly, a jaw snap
-    0 -> 0.7 over 2 frames at 40 and back at 46, blinks 0.05 -> 0.5, 0.95, 0.95, 0.5 at 20 and 65
-    (tests/nodes/temporal/test_adaptive_landmarks.py's shot)."""
-    from nodes.geometry.rotation import axis_angle_to_rotmat
-
-    rng = np.random.default_rng(seed)
-    t = np.arange(FIT_FRAMES)
-    k = {n: i for i, n in enumerate(shapes)}
-    turn = 0.05 * np.sin(t[:, None] / np.array([11.0, 13.0, 17.0]) + rng.uniform(0, 6, 3))
-    rotation = np.diag([1.0, -1.0, -1.0]) @ axis_angle_to_rotmat(turn)
-    translation = np.stack([-2 + 0.5 * np.sin(t / 13), -1.7 + 0.3 * np.sin(t / 17), 47 + np.sin(t / 19)], 1)
-    w = np.zeros((FIT_FRAMES, len(shapes)))
-    for n in ("mouthSmile_L", "mouthSmile_R"):
-        w[:, k[n]] = 0.3 + 0.2 * np.sin(t / 15 + rng.uniform(0, 6))
-    w[:, k["jawOpen"]] = 0.7 * np.clip((t - 39) / 2, 0, 1) * np.clip((47 - t) / 2, 0, 1)
-    for n in ("eyeBlink_L", "eyeBlink_R"):
-        w[:, k[n]] = 0.05
-        for b in FIT_BLINKS:
-            w[b:b + 4, k[n]] = [0.5, 0.95, 0.95, 0.5]
-    return np.concatenate([rotation.reshape(FIT_FRAMES, 9), translation, w], 1)
-
-
-def _per_frame_fit(truth: np.ndarray, project, seed: int, pixel_noise: float, prior: float = 1.0) -> np.ndarray:
-    """Each frame: argmin |J d - n|^2 + prior |w + d_w|^2 (J the landmarks' Jacobian at the truth,
-    n white pixel noise), applied as a rotation, a translation and weights clipped to [0, 1]."""
-    from nodes.geometry.rotation import axis_angle_to_rotmat
-    from nodes.temporal.adaptive import landmark_jacobian
-
-    rng = np.random.default_rng(1000 + seed)
-    out = truth.copy()
-    k = truth.shape[1] - 12
-    on_weights = np.r_[np.zeros(6), np.ones(k)]
-    for f in range(len(truth)):
-        rot = truth[f, :9].reshape(3, 3)
-
-        def landmarks(c: np.ndarray, f: int = f, rot: np.ndarray = rot) -> np.ndarray:
-            rows = np.tile(truth[f], (len(c), 1))
-            rows[:, :9] = (rot @ axis_angle_to_rotmat(c[:, :3])).reshape(-1, 9)
-            rows[:, 9:] = truth[f, 9:] + c[:, 3:]
-            return project(rows)
-
-        jac = landmark_jacobian(landmarks, np.zeros(6 + k))
-        noise = rng.normal(0, pixel_noise, jac.shape[0])
-        step = np.linalg.solve(jac.T @ jac + prior * np.diag(on_weights),
-                               jac.T @ noise - prior * on_weights * np.r_[np.zeros(6), truth[f, 12:]])
-        out[f, :9] = (rot @ axis_angle_to_rotmat(step[None, :3]))[0].reshape(9)
-        out[f, 9:12] = truth[f, 9:12] + step[3:6]
-        out[f, 12:] = np.clip(truth[f, 12:] + step[6:], 0, 1)
-    return out
-
-
 def fit_shot_rows(seeds: int = 3, noises: tuple[float, ...] = (0.3, 1.0)) -> list[str]:
     """Section 3 of the module docstring."""
     from nodegraph import Camera, ParamSequence, run_node
@@ -202,7 +149,7 @@ def fit_shot_rows(seeds: int = 3, noises: tuple[float, ...] = (0.3, 1.0)) -> lis
 
         def lid(p: np.ndarray) -> float:
             gap = np.linalg.norm(p[:, [37, 38, 43, 44]] - p[:, [41, 40, 47, 46]], axis=2).mean(1)
-            return float(np.median(gap) - np.mean([gap[b + 1:b + 3].mean() for b in FIT_BLINKS]))
+            return float(np.median(gap) - np.mean([gap[b + 1:b + 3].mean() for b in LANDMARK_FIT_BLINKS]))
 
         def snap(v: np.ndarray) -> float:
             return float(v[42:45, jaw].mean() - v[35:38, jaw].mean())
@@ -217,7 +164,7 @@ def fit_shot_rows(seeds: int = 3, noises: tuple[float, ...] = (0.3, 1.0)) -> lis
 
     labels = ("raw", "3-frame averaged", "adaptive, curve by curve (no model)",
               "adaptive in the landmarks' metric (model + camera, as shipped)")
-    rows = [f"per-frame fit with known truth on the bundled model, {FIT_FRAMES} frames, {seeds} seeds (errors to "
+    rows = [f"per-frame fit with known truth on the bundled model, {LANDMARK_FIT_FRAMES} frames, {seeds} seeds (errors to "
             "the truth; blink: the eyelids' closing kept, jaw: the jawOpen snap kept, 1 = the truth's)",
             "| landmark noise (px) | | rotation error (deg) | 68-point error (px RMS) | weight RMS error | rotation "
             "roughness (deg^2) | 68-point roughness (px^2) | weight roughness | blink | jaw snap |",
@@ -225,8 +172,8 @@ def fit_shot_rows(seeds: int = 3, noises: tuple[float, ...] = (0.3, 1.0)) -> lis
     for noise in noises:
         stats, truth_stats = [], []
         for seed in range(seeds):
-            truth = _fit_truth(seed, shapes)
-            fitted = _per_frame_fit(truth, project, seed, noise)
+            truth = landmark_fit_truth(seed, shapes)
+            fitted = per_frame_landmark_fit(truth, project, seed, noise)
             seq = ParamSequence(fitted.astype(np.float32), names)
             outs = [fitted, run_node(Average, fitted=seq)["averaged"].values,
                     run_node(AdaptiveSmooth, fitted=seq)["smoothed"].values,

@@ -35,7 +35,8 @@ import numpy as np
 from nodegraph import Camera, FaceModel, ImageSequence
 from nodes.geometry.rotation import axis_angle_to_rotmat, euler_to_rotmat
 
-__all__ = ["SYNTHETIC_IDENTITY_SEED", "orbit_camera", "random_face_parameters", "render_plates",
+__all__ = ["LANDMARK_FIT_BLINKS", "LANDMARK_FIT_FRAMES", "landmark_fit_truth", "per_frame_landmark_fit",
+           "SYNTHETIC_IDENTITY_SEED", "orbit_camera", "random_face_parameters", "render_plates",
            "render_truth_plates", "Scene", "make_scene", "head_motion", "scene_vertices", "render_scene_plates"]
 
 SYNTHETIC_IDENTITY_SEED = 918_273
@@ -273,3 +274,61 @@ def render_scene_plates(scene: Scene, values: np.ndarray, *, supersample: int = 
     images = render_plates(scene_vertices(scene, values, device), scene.faces, scene.camera, scene.albedo,
                            scene.sh, scene.background, supersample=supersample, device=device)
     return ImageSequence(images.astype(np.float32), ["R", "G", "B"], colour_space="linear")
+
+
+LANDMARK_FIT_FRAMES = 90
+LANDMARK_FIT_BLINKS = (20, 65)  # first frame of each 4-frame blink
+
+
+def landmark_fit_truth(seed: int, shapes: list[str], frames: int = LANDMARK_FIT_FRAMES,
+                       blinks: tuple[int, ...] = LANDMARK_FIT_BLINKS) -> np.ndarray:
+    """(F, 12 + K) fit layout: a head 47 cm away turning +-3 degrees, smiling slowly, a jaw snap
+    0 -> 0.7 over 2 frames at 40 and back at 46, blinks 0.05 -> 0.5, 0.95, 0.95, 0.5 at 20 and 65
+    (tests/nodes/temporal/test_adaptive_landmarks.py's and bench/smoothing.py's shot); `shapes`
+    are the model's expression names."""
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames)
+    k = {n: i for i, n in enumerate(shapes)}
+    turn = 0.05 * np.sin(t[:, None] / np.array([11.0, 13.0, 17.0]) + rng.uniform(0, 6, 3))
+    rotation = np.diag([1.0, -1.0, -1.0]) @ axis_angle_to_rotmat(turn)
+    translation = np.stack([-2 + 0.5 * np.sin(t / 13), -1.7 + 0.3 * np.sin(t / 17), 47 + np.sin(t / 19)], 1)
+    w = np.zeros((frames, len(shapes)))
+    for n in ("mouthSmile_L", "mouthSmile_R"):
+        w[:, k[n]] = 0.3 + 0.2 * np.sin(t / 15 + rng.uniform(0, 6))
+    w[:, k["jawOpen"]] = 0.7 * np.clip((t - 39) / 2, 0, 1) * np.clip((47 - t) / 2, 0, 1)
+    for n in ("eyeBlink_L", "eyeBlink_R"):
+        w[:, k[n]] = 0.05
+        for b in blinks:
+            w[b:b + 4, k[n]] = [0.5, 0.95, 0.95, 0.5]
+    return np.concatenate([rotation.reshape(frames, 9), translation, w], 1)
+
+
+def per_frame_landmark_fit(truth: np.ndarray, project, seed: int, pixel_noise: float, prior: float = 1.0) -> np.ndarray:
+    """Each frame: argmin |J d - n|^2 + prior |w + d_w|^2 (J the landmarks' Jacobian at the truth,
+    n white pixel noise), applied as a rotation, a translation and weights clipped to [0, 1]: a
+    per-frame fit as the real one behaves (weights pinned at 0 with spikes, correlated where the
+    landmarks barely tell shapes apart). `project`: (N, 12 + K) rows -> (N, 136) pixels."""
+    from nodes.temporal.adaptive import landmark_jacobian
+
+    rng = np.random.default_rng(1000 + seed)
+    out = truth.copy()
+    k = truth.shape[1] - 12
+    on_weights = np.r_[np.zeros(6), np.ones(k)]
+    for f in range(len(truth)):
+        rot = truth[f, :9].reshape(3, 3)
+
+        def landmarks(c: np.ndarray, f: int = f, rot: np.ndarray = rot) -> np.ndarray:
+            rows = np.tile(truth[f], (len(c), 1))
+            rows[:, :9] = (rot @ axis_angle_to_rotmat(c[:, :3])).reshape(-1, 9)
+            rows[:, 9:] = truth[f, 9:] + c[:, 3:]
+            return project(rows)
+
+        jac = landmark_jacobian(landmarks, np.zeros(6 + k))
+        noise = rng.normal(0, pixel_noise, jac.shape[0])
+        step = np.linalg.solve(jac.T @ jac + prior * np.diag(on_weights),
+                               jac.T @ noise - prior * on_weights * np.r_[np.zeros(6), truth[f, 12:]])
+        out[f, :9] = (rot @ axis_angle_to_rotmat(step[None, :3]))[0].reshape(9)
+        out[f, 9:12] = truth[f, 9:12] + step[3:6]
+        out[f, 12:] = np.clip(truth[f, 12:] + step[6:], 0, 1)
+    return out

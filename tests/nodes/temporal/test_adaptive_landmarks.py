@@ -15,14 +15,16 @@ import numpy as np
 import pytest
 
 from nodegraph import Camera, ParamSequence, run_node
-from nodes.geometry.rotation import axis_angle_to_rotmat, rotmat_to_axis_angle
+from nodes.geometry.rotation import rotmat_to_axis_angle
 from nodes.temporal import AdaptiveSmooth, Average
-from nodes.temporal.adaptive import landmark_jacobian, smooth_in_landmark_metric
+from nodes.temporal.adaptive import smooth_in_landmark_metric
 from nodes.temporal.layout import FIT_TRANSLATION_NAMES, MATRIX_NAMES, params_layout
 from nodes.temporal.nodes import _projected_landmarks_function
+from tests.support.synthetic import (LANDMARK_FIT_BLINKS, LANDMARK_FIT_FRAMES, landmark_fit_truth,
+                                     per_frame_landmark_fit)
 
-F = 90
-BLINKS = (20, 65)  # first frame of each 4-frame blink: 0.05 -> 0.5, 0.95, 0.95, 0.5 -> 0.05
+F = LANDMARK_FIT_FRAMES
+BLINKS = LANDMARK_FIT_BLINKS  # first frame of each 4-frame blink: 0.05 -> 0.5, 0.95, 0.95, 0.5 -> 0.05
 
 
 @pytest.fixture(scope="module")
@@ -34,52 +36,6 @@ def scene():
     names = list(MATRIX_NAMES) + list(FIT_TRANSLATION_NAMES) + list(model.expression_names)
     project = _projected_landmarks_function(model, camera, params_layout(names, list(model.expression_names)))
     return model, camera, names, project
-
-
-def _truth(seed: int, shapes: list[str]) -> np.ndarray:
-    """(F, 12 + K) fit layout: a head 47 cm away turning +-3 degrees, smiling slowly, a jaw snap
-    0 -> 0.7 over 2 frames at 40 and back at 46, two blinks."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(F)
-    k = {n: i for i, n in enumerate(shapes)}
-    turn = 0.05 * np.sin(t[:, None] / np.array([11.0, 13.0, 17.0]) + rng.uniform(0, 6, 3))
-    rotation = np.diag([1.0, -1.0, -1.0]) @ axis_angle_to_rotmat(turn)  # the fit's world faces the camera
-    translation = np.stack([-2 + 0.5 * np.sin(t / 13), -1.7 + 0.3 * np.sin(t / 17), 47 + np.sin(t / 19)], 1)
-    w = np.zeros((F, len(shapes)))
-    for n in ("mouthSmile_L", "mouthSmile_R"):
-        w[:, k[n]] = 0.3 + 0.2 * np.sin(t / 15 + rng.uniform(0, 6))
-    w[:, k["jawOpen"]] = 0.7 * np.clip((t - 39) / 2, 0, 1) * np.clip((47 - t) / 2, 0, 1)
-    for n in ("eyeBlink_L", "eyeBlink_R"):
-        w[:, k[n]] = 0.05
-        for b in BLINKS:
-            w[b:b + 4, k[n]] = [0.5, 0.95, 0.95, 0.5]
-    return np.concatenate([rotation.reshape(F, 9), translation, w], 1)
-
-
-def _per_frame_fit(truth: np.ndarray, project, seed: int, pixel_noise: float, prior: float = 1.0) -> np.ndarray:
-    """Each frame: argmin |J d - n|^2 + prior |w + d_w|^2 (J the landmarks' Jacobian at the truth,
-    n white pixel noise), applied as a rotation, a translation and weights clipped to [0, 1]."""
-    rng = np.random.default_rng(1000 + seed)
-    out = truth.copy()
-    k = truth.shape[1] - 12
-    on_weights = np.r_[np.zeros(6), np.ones(k)]
-    for f in range(F):
-        rot = truth[f, :9].reshape(3, 3)
-
-        def landmarks(c: np.ndarray, f: int = f, rot: np.ndarray = rot) -> np.ndarray:
-            rows = np.tile(truth[f], (len(c), 1))
-            rows[:, :9] = (rot @ axis_angle_to_rotmat(c[:, :3])).reshape(-1, 9)
-            rows[:, 9:] = truth[f, 9:] + c[:, 3:]
-            return project(rows)
-
-        jac = landmark_jacobian(landmarks, np.zeros(6 + k))
-        noise = rng.normal(0, pixel_noise, jac.shape[0])
-        step = np.linalg.solve(jac.T @ jac + prior * np.diag(on_weights),
-                               jac.T @ noise - prior * on_weights * np.r_[np.zeros(6), truth[f, 12:]])
-        out[f, :9] = (rot @ axis_angle_to_rotmat(step[None, :3]))[0].reshape(9)
-        out[f, 9:] = np.clip(truth[f, 9:] + step[3:], np.r_[-np.inf, -np.inf, -np.inf, np.zeros(k)],
-                             np.r_[np.inf, np.inf, np.inf, np.ones(k)])
-    return out
 
 
 def _measures(y: np.ndarray, truth: np.ndarray, project) -> dict[str, float]:
@@ -104,8 +60,8 @@ def test_landmark_metric_smoothing_beats_averaging_on_a_known_fit(scene):
     got = {"raw": [], "average": [], "adaptive": []}
     truths = []
     for seed in range(3):
-        truth = _truth(seed, list(model.expression_names))
-        fitted = _per_frame_fit(truth, project, seed, 0.3)
+        truth = landmark_fit_truth(seed, list(model.expression_names))
+        fitted = per_frame_landmark_fit(truth, project, seed, 0.3)
         seq = ParamSequence(fitted.astype(np.float32), names)
         got["raw"].append(_measures(fitted, truth, project))
         got["average"].append(_measures(run_node(Average, fitted=seq)["averaged"].values.astype(np.float64),
@@ -142,8 +98,8 @@ def test_sigma_is_the_landmark_noise_and_a_clean_shot_is_left_nearly_alone():
 
 def test_failed_frames_are_filled_not_used_and_left_alone_by_the_node(scene):
     model, camera, names, project = scene
-    truth = _truth(0, list(model.expression_names))
-    fitted = _per_frame_fit(truth, project, 0, 0.3)
+    truth = landmark_fit_truth(0, list(model.expression_names))
+    fitted = per_frame_landmark_fit(truth, project, 0, 0.3)
     fitted[30:33] = np.nan
     failed = ParamSequence(np.isnan(fitted[:, :1]).astype(np.float32), ["failed"])
     out = run_node(AdaptiveSmooth, fitted=ParamSequence(fitted.astype(np.float32), names), failed=failed,
@@ -153,7 +109,7 @@ def test_failed_frames_are_filled_not_used_and_left_alone_by_the_node(scene):
 
 def test_model_without_camera_is_an_input_error(scene):
     model, camera, names, project = scene
-    seq = ParamSequence(_truth(0, list(model.expression_names)).astype(np.float32), names)
+    seq = ParamSequence(landmark_fit_truth(0, list(model.expression_names)).astype(np.float32), names)
     with pytest.raises(Exception, match="'camera': expected both 'model' and 'camera'"):
         run_node(AdaptiveSmooth, fitted=seq, model=model)
     with pytest.raises(Exception, match="'model': expected both 'model' and 'camera'"):
