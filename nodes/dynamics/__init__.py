@@ -2,4 +2,5 @@
 
 from .._areas import import_modules
 
-import_modules(__name__, ["networks", "removal", "synthesis", "descriptors", "evaluate", "files", "takes"])
+import_modules(__name__, ["networks", "removal", "synthesis", "descriptors", "evaluate", "files", "take_files",
+                          "takes"])

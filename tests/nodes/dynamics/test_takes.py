@@ -10,7 +10,8 @@ import pytest
 from nodegraph import MeshSequence, NodeError, RigidSequence, run_node
 from nodegraph.cache import Cache
 from nodegraph.takes import Takes, cached_take
-from nodes.dynamics.takes import LoadTakes, StabilizeTakes, TrainRemovalTakes, find_takes
+from nodes.dynamics.take_files import LoadTakes, find_takes
+from nodes.dynamics.takes import StabilizeTakes, TrainRemovalTakes
 from nodes.geometry.rigid import stabilize_vertices
 from nodes.io.mesh import save_mesh_sequence
 from nodes.synth.dynamics import simulate_dynamics
@@ -111,7 +112,7 @@ def test_train_removal_takes_checks_its_inputs():
 
 
 def test_load_takes_reads_only_changed_files_through_the_runs_cache(tmp_path, monkeypatch):
-    import nodes.dynamics.takes as module
+    import nodes.dynamics.take_files as module
 
     folder = tmp_path / "takes"
     folder.mkdir()
