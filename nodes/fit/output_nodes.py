@@ -24,7 +24,7 @@ from nodegraph.flags import flags_to_mask
 from .node_inputs import _fit_model, _state_from, _views
 from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
-__all__ = ["FIT_FAILURE_REASONS", "MAX_REPROJECTION", "MAX_ENERGY_RMS", "LandmarkProjection",
+__all__ = ["FIT_FAILURE_REASONS", "MAX_REPROJECTION", "MAX_ENERGY_RMS", "MIN_OUTLIER_ENERGY_RMS", "LandmarkProjection",
            "projected_landmarks68", "reprojection_error", "energy_rms", "FlagFailures", "SaveFit", "FitReport"]
 
 FIT_FAILURE_REASONS = ("", "no face or no pose", "energy above factor x the shot's median",
@@ -51,6 +51,13 @@ in the fitted head's eye distances). Measured as `MAX_REPROJECTION`: astronaut p
 0.047, cameraman 0.045 (the energy compares the network's reading of the render with the plate's
 points, so it does not grow with the turn as the fixed vertices do), the 3-frame pan 0.080-0.082;
 the synthetic wrong minimum 2.21. The bound is 1.8x the largest good value."""
+
+MIN_OUTLIER_ENERGY_RMS = 0.075
+"""fit.FlagFailures' floor under the relative check: a frame whose energy_rms is at most this is
+never an energy outlier, however far above the shot's median. Half of `MAX_ENERGY_RMS`, under the
+largest good value measured (0.082): on the demo's renders (40 frames) every frame's energy_rms is
+0.007-0.050, so a frame at 0.046 was 11.5x the median and failed, though it fits to 5% of the eye
+distance per landmark."""
 
 
 class LandmarkProjection(NamedTuple):
@@ -145,12 +152,20 @@ class FlagFailures(Node):
     """Flag frames with no face, an energy far above the shot's median or the eye distance, or landmarks far off."""
 
     type_name = "fit.FlagFailures"
-    version = 2  # 2: the absolute checks (fitted, model, camera, landmarks, boxes), columns reprojection, energy_rms, reason
+    version = 3  # 2: the absolute checks (fitted, model, camera, landmarks, boxes), columns reprojection,
+    # energy_rms, reason; 3: no relative outlier at or under min_outlier_energy_rms
     kind = SEQUENCE
 
     class Params(NodeParams):
         factor: float = Param(4.0, gt=1, description="A frame fails when its energy exceeds factor x the "
-                              "median energy of the fitted frames.")
+                              "median energy of the fitted frames (and, with the absolute checks' inputs, "
+                              "its energy_rms exceeds min_outlier_energy_rms).")
+        min_outlier_energy_rms: float = Param(MIN_OUTLIER_ENERGY_RMS, ge=0, description="With the absolute "
+                                              "checks' inputs: a frame whose energy_rms (eye distances) is at "
+                                              "most this is not an energy outlier, however far above the "
+                                              "median (a shot fitted to a few % of the eye distance has a "
+                                              "tiny median). Default: nodes.fit.output_nodes."
+                                              "MIN_OUTLIER_ENERGY_RMS, half of max_energy_rms.")
         max_reprojection: float = Param(MAX_REPROJECTION, ge=0, description="A frame fails when the fitted "
                                         "model's 68 landmark vertices, projected into the camera, miss the plate's "
                                         "by more than this RMS, in eye distances of the fitted head (as if it "
@@ -188,7 +203,8 @@ class FlagFailures(Node):
         def above(value: np.ndarray, bound: float) -> np.ndarray:  # NaN: not checked
             return ok & (bound > 0) & ~np.isnan(value) & ~(value <= bound)
 
-        reason = np.select([bad, ok & (ratio > p.factor), above(reprojection, p.max_reprojection),
+        outlier = ok & (ratio > p.factor) & ~(rms <= p.min_outlier_energy_rms)  # NaN rms: the ratio alone
+        reason = np.select([bad, outlier, above(reprojection, p.max_reprojection),
                             above(rms, p.max_energy_rms)], [1, 2, 3, 4], 0)
         values = np.stack([reason > 0, ratio, reprojection, rms, reason], 1).astype(np.float32)
         return {"flags": ParamSequence(values, ["failed", "energy_ratio", "reprojection", "energy_rms", "reason"])}

@@ -13,7 +13,7 @@ torch = pytest.importorskip("torch")
 from nodegraph import Camera, Landmarks2D, ParamSequence, run_node  # noqa: E402
 from nodes.fit import FlagFailures  # noqa: E402
 from nodes.fit.output_nodes import (FIT_FAILURE_REASONS, MAX_ENERGY_RMS, MAX_REPROJECTION,  # noqa: E402
-                                    LandmarkProjection, energy_rms, projected_landmarks68, reprojection_error)
+                                    MIN_OUTLIER_ENERGY_RMS, LandmarkProjection, energy_rms, projected_landmarks68, reprojection_error)
 from nodes.io.face_model import load_face_model  # noqa: E402
 
 NOISE_PX = 0.3  # per axis, on the synthetic plate landmarks
@@ -135,3 +135,33 @@ def test_the_median_check_and_no_face_keep_their_reasons_and_the_inputs_go_toget
         run_node(FlagFailures, energy=energy, failed=failed, model=model,
                  fitted=ParamSequence(np.zeros((4, 12 + len(model.expression_names)), np.float32),
                                       [f"v{i}" for i in range(12 + len(model.expression_names))]))
+
+
+def test_a_relative_outlier_that_still_fits_well_is_not_a_failure(shot):
+    """A shot fitted to a few % of the eye distance has a tiny median energy: a frame 10x above it
+    is no failure while its energy_rms stays under min_outlier_energy_rms; above that it is."""
+    model, camera, _, marks, boxes = shot
+    good, good_energy = _rigid_fit(shot, None, iterations=10)
+    three = np.repeat(good, 3, 0)
+    box = boxes.values.astype(np.float64)
+    eye = projected_landmarks68(good, model, camera).eye_px
+    rms_good = float(energy_rms(np.array([good_energy]), box, eye)[0])
+    # energy_rms grows as the square root of the energy: pick the outlier's energy for a target rms
+    just_under = (0.9 * MIN_OUTLIER_ENERGY_RMS / rms_good) ** 2 * good_energy
+    between = ((MIN_OUTLIER_ENERGY_RMS + MAX_ENERGY_RMS) / 2 / rms_good) ** 2 * good_energy
+    assert just_under > 4 * good_energy  # a relative outlier by the factor 4
+
+    def flags(outlier: float, **params) -> np.ndarray:
+        energy = np.array([[good_energy], [good_energy], [outlier]], np.float32)
+        return run_node(FlagFailures, params, energy=ParamSequence(energy, ["energy"]),
+                        failed=ParamSequence(np.zeros((3, 1), np.float32), ["failed"]),
+                        fitted=ParamSequence(three.astype(np.float32), [f"v{i}" for i in range(three.shape[1])]),
+                        model=model, camera=camera,
+                        landmarks=Landmarks2D(np.repeat(marks.points, 3, 0), np.repeat(marks.confidence, 3, 0)),
+                        boxes=ParamSequence(np.repeat(boxes.values, 3, 0), BOX))["flags"].values
+
+    kept = flags(just_under)
+    assert kept[2, 1] > 4 and kept[2, 3] == pytest.approx(0.9 * MIN_OUTLIER_ENERGY_RMS, rel=1e-3)
+    assert kept[:, 4].tolist() == [0, 0, 0]
+    assert flags(just_under, min_outlier_energy_rms=0.0)[:, 4].tolist() == [0, 0, 2]  # the ratio alone
+    assert flags(between)[:, 4].tolist() == [0, 0, 2]  # above the floor, under max_energy_rms: the ratio decides
