@@ -252,7 +252,7 @@ BAD_VALUES = [
     ("fit_video", "camera", "garbage_json", "camera"),
     ("fit_video", "camera", "folder", "camera"),
     ("fit_video", "camera", "camera.txt", "camera"),
-    ("fit_video", "face", "centre_left", "detect"),
+    ("fit_video", "face", "centre_left", "track"),
     ("fit_video", "output", "out/fit.png", "save"),
     ("fit_video", "report", "@a_file", "report"),
     ("fit_video_temporal", "images", "text_mp4", "frames"),
