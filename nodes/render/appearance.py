@@ -27,7 +27,7 @@ import numpy as np
 from nodegraph import FaceModel
 
 __all__ = ["ICT_HIDDEN_VERTEX_RANGES", "COLOURS", "BROW_HALF_WIDTH_CM", "DEFAULT_LIGHT", "hidden_faces",
-           "visible_faces", "default_albedo", "default_sh", "appearance_json", "parse_appearance"]
+           "culled_faces", "visible_faces", "default_albedo", "default_sh", "appearance_json", "parse_appearance"]
 
 ICT_HIDDEN_VERTEX_RANGES = ((24591, 25350), (25351, 26718))
 """Inclusive vertex ranges of the ICT head not drawn: transparent eye shells (lacrimal fluid,
@@ -74,12 +74,28 @@ def hidden_faces(faces: np.ndarray, ranges: tuple[tuple[int, int], ...] = ICT_HI
     return np.flatnonzero(hide)
 
 
+def culled_faces(faces: np.ndarray, num_vertices: int,
+                 ranges: tuple[tuple[int, int], ...] = ICT_HIDDEN_VERTEX_RANGES) -> np.ndarray:
+    """Indices of the faces not drawn: `hidden_faces` when the mesh is the whole head the ranges
+    index (more than the last range's end vertices); none for a smaller mesh (a region or a
+    reduced model is indexed differently, so the ranges do not apply).
+
+    Args:
+        faces: (T, 3) int vertex indices.
+        num_vertices: V, the mesh's vertex count.
+        ranges: inclusive (first, last) vertex ranges.
+    Returns:
+        (H,) int64 face indices, ascending.
+    """
+    if num_vertices <= max((last for _, last in ranges), default=-1):
+        return np.zeros(0, np.int64)
+    return hidden_faces(faces, ranges)
+
+
 def visible_faces(faces: np.ndarray, num_vertices: int,
                   ranges: tuple[tuple[int, int], ...] = ICT_HIDDEN_VERTEX_RANGES) -> np.ndarray:
     """The triangles drawn: `faces` less those with a corner in the hidden vertex `ranges`
-    (`hidden_faces`), when the mesh is the whole head the ranges index (more than the last
-    range's end vertices); all of `faces` for a smaller mesh (a region or a reduced model is
-    indexed differently, so the ranges do not apply).
+    (`culled_faces`: only when the mesh is the whole head the ranges index).
 
     Args:
         faces: (T, 3) int vertex indices.
@@ -93,9 +109,7 @@ def visible_faces(faces: np.ndarray, num_vertices: int,
         [[0, 1, 2]]
     """
     faces = np.asarray(faces, np.int64)
-    if num_vertices <= max((last for _, last in ranges), default=-1):
-        return faces
-    return np.delete(faces, hidden_faces(faces, ranges), axis=0)
+    return np.delete(faces, culled_faces(faces, num_vertices, ranges), axis=0)
 
 
 def _inside_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
@@ -187,16 +201,14 @@ def default_sh() -> np.ndarray:
 def model_appearance(model: FaceModel, value: Any | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """albedo, sh, background, hidden faces of an appearance JSON value (`parse_appearance`), or of
     the default appearance when `value` is None (ICT eye shells and lashes hidden when the model
-    is the whole head, as `visible_faces`).
+    is the whole head: `culled_faces`).
 
     Raises:
         ValueError: as `parse_appearance`.
     """
     if value is None:
-        faces = np.asarray(model.faces, np.int64)
-        drawn = visible_faces(faces, model.neutral.shape[0])
-        hidden = (hidden_faces(faces) if len(drawn) < len(faces) else np.zeros(0, np.int64))
-        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32), hidden)
+        return (default_albedo(model), default_sh(), np.asarray(DEFAULT_LIGHT["background"], np.float32),
+                culled_faces(model.faces, model.neutral.shape[0]))
     return parse_appearance(value, model.neutral.shape[0], len(model.faces))
 
 

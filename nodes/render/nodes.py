@@ -11,8 +11,7 @@ import numpy as np
 from nodegraph import (FRAMEWISE, SEQUENCE, Camera, FaceModel, ImageSequence, In, InputError, JsonValue,
                        MeshSequence, Node, NodeParams, Out, Param)
 
-from .appearance import (DEFAULT_LIGHT, ICT_HIDDEN_VERTEX_RANGES, appearance_json, default_albedo,
-                         hidden_faces, parse_appearance)
+from .appearance import DEFAULT_LIGHT, appearance_json, culled_faces, default_albedo, parse_appearance
 
 __all__ = ["DefaultAppearance", "Render", "BUFFER_CHANNELS"]
 
@@ -51,9 +50,7 @@ class DefaultAppearance(Node):
         if not any(p.direction):
             raise InputError("direction", f"expected a non-zero direction, found {p.direction}")
         sh = sh_from_lights(p.ambient, p.direction, p.intensity)
-        hidden = None
-        if p.hide_eye_shells_and_lashes and model.neutral.shape[0] > ICT_HIDDEN_VERTEX_RANGES[-1][1]:
-            hidden = hidden_faces(model.faces)
+        hidden = culled_faces(model.faces, model.neutral.shape[0]) if p.hide_eye_shells_and_lashes else None
         return {"appearance": JsonValue(appearance_json(default_albedo(model), sh, tuple(p.background), hidden))}
 
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from nodes.io.face_model import load_face_model
-from nodes.render.appearance import ICT_HIDDEN_VERTEX_RANGES, hidden_faces, visible_faces
+from nodes.render.appearance import (ICT_HIDDEN_VERTEX_RANGES, culled_faces, hidden_faces, model_appearance,
+                                     visible_faces)
 
 
 def test_visible_faces_drops_the_faces_touching_a_hidden_range_in_order():
@@ -24,6 +25,8 @@ def test_visible_faces_keeps_every_face_of_a_mesh_the_ranges_do_not_index():
     region = load_face_model(region="face")
     assert region.neutral.shape[0] <= ICT_HIDDEN_VERTEX_RANGES[-1][1]
     np.testing.assert_array_equal(visible_faces(region.faces, region.neutral.shape[0]), region.faces)
+    assert culled_faces(faces, 5, ((3, 6),)).tolist() == [] and culled_faces(faces, 7, ((3, 6),)).tolist() == [1, 2]
+    assert culled_faces(region.faces, region.neutral.shape[0]).tolist() == []
 
 
 def test_visible_faces_of_the_ict_head_against_a_per_face_reference():
@@ -33,4 +36,5 @@ def test_visible_faces_of_the_ict_head_against_a_per_face_reference():
                  if not any(first <= v <= last for v in face for first, last in ICT_HIDDEN_VERTEX_RANGES)]
     assert kept.tolist() == reference
     assert len(kept) + len(hidden_faces(model.faces)) == len(model.faces)
+    np.testing.assert_array_equal(model_appearance(model, None)[3], hidden_faces(model.faces))
     assert 0 < len(kept) < len(model.faces)
