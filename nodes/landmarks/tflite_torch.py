@@ -7,11 +7,15 @@ frozen `nn.Parameter` (float16 weights are dequantized once to float32) and repl
 operators with `torch.nn.functional`, so gradients flow from the outputs back to the input
 image (and, after `requires_grad_(True)`, to the weights).
 
-Supported operators (the set of MediaPipe's face detector and face mesh):
-DEQUANTIZE, CONV_2D, DEPTHWISE_CONV_2D, ADD, PRELU, RELU, MAX_POOL_2D, PAD, RESHAPE,
-CONCATENATION, with fused NONE / RELU / RELU6 / RELU_N1_TO_1 activations and TF "SAME"
-(asymmetric, extra pixel after) or "VALID" padding. Anything else raises `ValueError` naming
-the operator.
+Supported operators (the set of MediaPipe's face detectors, face mesh and iris networks):
+DEQUANTIZE, DENSIFY, CONV_2D, DEPTHWISE_CONV_2D, ADD, PRELU, RELU, MAX_POOL_2D, PAD, RESHAPE,
+CONCATENATION, RESIZE_BILINEAR, DEPTH_TO_SPACE, with fused NONE / RELU / RELU6 / RELU_N1_TO_1
+activations and TF "SAME" (asymmetric, extra pixel after) or "VALID" padding. Anything else
+raises `ValueError` naming the operator.
+
+Sparse constants (TFLite's `SparsityParameters`: per traversed dimension DENSE or SPARSE_CSR,
+as in `face_detection_full_range_sparse.tflite`) are expanded to dense arrays when the file is
+read (`densify`), so DENSIFY replays as the identity on a constant.
 
 Layout: TFLite activations are NHWC; the replay keeps 4-D activations NCHW internally
 (torch's fast path) and converts back to NHWC wherever the layout is observable (RESHAPE,
@@ -34,10 +38,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 __all__ = ["TfliteTensor", "TfliteOperator", "TfliteGraph", "read_tflite", "TfliteModule",
-           "SUPPORTED_OPERATORS"]
+           "SUPPORTED_OPERATORS", "densify", "depth_to_space", "resize_bilinear_tf"]
 
-SUPPORTED_OPERATORS = ("DEQUANTIZE", "CONV_2D", "DEPTHWISE_CONV_2D", "ADD", "PRELU", "RELU",
-                       "MAX_POOL_2D", "PAD", "RESHAPE", "CONCATENATION")
+SUPPORTED_OPERATORS = ("DEQUANTIZE", "DENSIFY", "CONV_2D", "DEPTHWISE_CONV_2D", "ADD", "PRELU", "RELU",
+                       "MAX_POOL_2D", "PAD", "RESHAPE", "CONCATENATION", "RESIZE_BILINEAR", "DEPTH_TO_SPACE")
 """Operators `TfliteModule` replays."""
 
 _NUMPY_TYPES = {0: np.float32, 1: np.float16, 2: np.int32, 3: np.uint8, 4: np.int64, 9: np.int8}
@@ -95,7 +99,8 @@ def _options(op: Any, name: str) -> dict[str, Any]:
     table = op.BuiltinOptions()
     classes = {"CONV_2D": tflite.Conv2DOptions, "DEPTHWISE_CONV_2D": tflite.DepthwiseConv2DOptions,
                "MAX_POOL_2D": tflite.Pool2DOptions, "ADD": tflite.AddOptions,
-               "CONCATENATION": tflite.ConcatenationOptions, "RESHAPE": tflite.ReshapeOptions}
+               "CONCATENATION": tflite.ConcatenationOptions, "RESHAPE": tflite.ReshapeOptions,
+               "RESIZE_BILINEAR": tflite.ResizeBilinearOptions, "DEPTH_TO_SPACE": tflite.DepthToSpaceOptions}
     if table is None or name not in classes:
         return {}
     opt = classes[name]()
@@ -116,7 +121,88 @@ def _options(op: Any, name: str) -> dict[str, Any]:
         out["axis"] = opt.Axis()
     if name == "RESHAPE" and not opt.NewShapeIsNone():
         out["new_shape"] = [int(v) for v in opt.NewShapeAsNumpy()]
+    if name == "RESIZE_BILINEAR":
+        out.update(align_corners=bool(opt.AlignCorners()), half_pixel_centers=bool(opt.HalfPixelCenters()))
+    if name == "DEPTH_TO_SPACE":
+        out["block_size"] = int(opt.BlockSize())
     return out
+
+
+def densify(values: np.ndarray, shape: tuple[int, ...], traversal_order: list[int],
+            dims: list[tuple[str, int, np.ndarray | None, np.ndarray | None]]) -> np.ndarray:
+    """Expand a TFLite sparse tensor (no block map) to its dense array.
+
+    The dimensions are traversed in `traversal_order`; a DENSE dimension of size n gives each
+    position p of the level above the children p * n + i (i < n), a SPARSE_CSR one the children
+    segments[p] .. segments[p + 1] - 1 with coordinates indices[child]. After the last level a
+    position is the index of the stored value (TFLite's FormatConverter, without blocks).
+
+    Args:
+        values: (N,) the stored (non-zero) values, in traversal order.
+        shape: the dense shape.
+        traversal_order: dimension traversed at each level (a permutation of range(len(shape))).
+        dims: per level ("DENSE", size, None, None) or ("SPARSE_CSR", 0, segments, indices).
+    Returns:
+        the dense array of `shape`, zeros where nothing is stored.
+
+    Example:
+        >>> densify(np.array([5., 7.]), (2, 3), [0, 1],
+        ...         [("DENSE", 2, None, None), ("SPARSE_CSR", 0, np.array([0, 1, 2]), np.array([2, 0]))]).tolist()
+        [[0.0, 0.0, 5.0], [7.0, 0.0, 0.0]]
+    """
+    if sorted(traversal_order) != list(range(len(shape))) or len(dims) != len(shape):
+        raise ValueError(f"sparsity: traversal order {traversal_order} with {len(dims)} dimension(s) does "
+                         f"not describe a tensor of shape {shape} (block maps are not supported)")
+    positions = np.zeros(1, np.int64)
+    coords = np.zeros((1, 0), np.int64)
+    for kind, size, segments, indices in dims:
+        if kind == "DENSE":
+            child = np.arange(size, dtype=np.int64)
+            positions = (positions[:, None] * size + child).reshape(-1)
+            coords = np.concatenate([np.repeat(coords, size, 0), np.tile(child, len(coords))[:, None]], 1)
+        else:
+            segments = np.asarray(segments, np.int64)
+            start, stop = segments[positions], segments[positions + 1]
+            counts = stop - start
+            parent = np.repeat(np.arange(len(positions)), counts)
+            offset = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)  # within a segment
+            positions = np.repeat(start, counts) + offset
+            coords = np.concatenate([coords[parent], np.asarray(indices, np.int64)[positions][:, None]], 1)
+    if len(positions) != len(values):
+        raise ValueError(f"sparsity: the index arrays address {len(positions)} values, {len(values)} are stored")
+    dense = np.zeros(shape, values.dtype)
+    axes = np.empty_like(coords)
+    axes[:, traversal_order] = coords
+    dense[tuple(axes.T)] = values[positions]
+    return dense
+
+
+def _sparse_dims(sparsity: Any) -> tuple[list[int], list[tuple[str, int, np.ndarray | None, np.ndarray | None]]]:
+    """Traversal order and per-level (format, dense size, segments, indices) of a SparsityParameters table."""
+    import tflite
+
+    vectors = {tflite.SparseIndexVector.Int32Vector: tflite.Int32Vector,
+               tflite.SparseIndexVector.Uint16Vector: tflite.Uint16Vector,
+               tflite.SparseIndexVector.Uint8Vector: tflite.Uint8Vector}
+
+    def vector(kind: int, table: Any) -> np.ndarray:
+        if kind not in vectors:
+            raise ValueError(f"sparsity: index vector type {kind}, expected one of {sorted(vectors)}")
+        v = vectors[kind]()
+        v.Init(table.Bytes, table.Pos)
+        return np.asarray(v.ValuesAsNumpy(), np.int64)
+
+    if sparsity.BlockMapLength():
+        raise ValueError(f"sparsity: block map {list(sparsity.BlockMapAsNumpy())} is not supported")
+    dims = []
+    for d in range(sparsity.DimMetadataLength()):
+        meta = sparsity.DimMetadata(d)
+        if meta.Format() == tflite.DimensionType.DENSE:
+            dims.append(("DENSE", int(meta.DenseSize()), None, None))
+        else:
+            dims.append(("SPARSE_CSR", 0, vector(meta.ArraySegmentsType(), meta.ArraySegments()),
+                         vector(meta.ArrayIndicesType(), meta.ArrayIndices())))
+    return [int(v) for v in sparsity.TraversalOrderAsNumpy()], dims
 
 
 def read_tflite(path: str | Path) -> TfliteGraph:
@@ -154,7 +240,13 @@ def read_tflite(path: str | Path) -> TfliteGraph:
         raw = model.Buffers(t.Buffer()).DataAsNumpy() if t.Buffer() < model.BuffersLength() else 0
         data = None
         if isinstance(raw, np.ndarray) and raw.size:
-            data = np.frombuffer(raw.tobytes(), dtype=dtype).reshape(shape)
+            data = np.frombuffer(raw.tobytes(), dtype=dtype)
+            if t.Sparsity() is not None:  # stored compressed: expand once (DENSIFY of a constant)
+                try:
+                    data = densify(data, shape, *_sparse_dims(t.Sparsity()))
+                except ValueError as error:
+                    raise ValueError(f"path: '{path}': tensor {t.Name().decode()!r}: {error}") from None
+            data = data.reshape(shape)
         tensors.append(TfliteTensor(t.Name().decode(), shape, dtype, data))
     operators = []
     for i in range(graph.OperatorsLength()):
@@ -183,6 +275,52 @@ def _activate(x: Tensor, code: int) -> Tensor:
     if code == 3:
         return x.clamp(0.0, 6.0)
     raise ValueError(f"fused activation: expected NONE, RELU, RELU_N1_TO_1 or RELU6, found code {code}")
+
+
+def depth_to_space(x: Tensor, block: int) -> Tensor:
+    """TFLite DEPTH_TO_SPACE on an NCHW tensor: (B, C * b * b, H, W) -> (B, C, H * b, W * b).
+
+    TFLite's channel order (NHWC "DCR"): output[n, h * b + i, w * b + j, c] =
+    input[n, h, w, (i * b + j) * C + c] (torch's `pixel_shuffle` orders the channels (c, i, j)).
+    """
+    bsz, channels, height, width = x.shape
+    if channels % (block * block):
+        raise ValueError(f"DEPTH_TO_SPACE: expected channels divisible by {block * block}, found {channels}")
+    out = channels // (block * block)
+    return (x.reshape(bsz, block, block, out, height, width).permute(0, 3, 4, 1, 5, 2)
+            .reshape(bsz, out, height * block, width * block))
+
+
+def _source_index(out_size: int, in_size: int, align_corners: bool, half_pixel: bool,
+                  device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+    """TFLite's bilinear source coordinate of each output pixel of one axis: (lower, upper, weight of upper)."""
+    i = torch.arange(out_size, device=device, dtype=torch.float64)
+    if align_corners and out_size > 1:
+        src = i * ((in_size - 1) / (out_size - 1))
+    elif half_pixel:
+        src = (i + 0.5) * (in_size / out_size) - 0.5
+    else:
+        src = i * (in_size / out_size)
+    low = torch.floor(src)
+    weight = (src - low).to(dtype)
+    lower = low.clamp(0, in_size - 1).long()
+    upper = torch.ceil(src).clamp(0, in_size - 1).long()
+    return lower, upper, weight
+
+
+def resize_bilinear_tf(x: Tensor, size: tuple[int, int], align_corners: bool = False,
+                       half_pixel_centers: bool = False) -> Tensor:
+    """TFLite RESIZE_BILINEAR on an NCHW tensor (B, C, H, W) -> (B, C, size[0], size[1]).
+
+    Per axis the output pixel i reads the input at s = i (in - 1) / (out - 1) (`align_corners`),
+    (i + 1/2) in / out - 1/2 (`half_pixel_centers`) or i in / out (neither, TF's legacy mode);
+    the value is x[floor(s)] + (s - floor(s)) (x[ceil(s)] - x[floor(s)]), indices clamped to the
+    input (TFLite's reference kernel).
+    """
+    (ly, uy, wy), (lx, ux, wx) = (_source_index(o, n, align_corners, half_pixel_centers, x.device, x.dtype)
+                                  for o, n in zip(size, x.shape[2:]))
+    rows = x[:, :, ly] + (x[:, :, uy] - x[:, :, ly]) * wy[:, None]
+    return rows[..., lx] + (rows[..., ux] - rows[..., lx]) * wx
 
 
 class TfliteModule(nn.Module):
@@ -219,8 +357,8 @@ class TfliteModule(nn.Module):
         for index, tensor in enumerate(graph.tensors):
             if tensor.data is not None and tensor.dtype in (np.float16, np.float32):
                 raw[index] = torch.from_numpy(tensor.data.astype(np.float32))
-        for op in graph.operators:  # a DEQUANTIZE output is its input's constant, converted once
-            if op.name == "DEQUANTIZE" and op.inputs[0] in raw:
+        for op in graph.operators:  # a DEQUANTIZE (DENSIFY) output is its input's constant, converted once
+            if op.name in ("DEQUANTIZE", "DENSIFY") and op.inputs[0] in raw:
                 raw[op.outputs[0]] = raw[op.inputs[0]]
         prepared: set[int] = set()
         for k, op in enumerate(graph.operators):
@@ -271,9 +409,11 @@ class TfliteModule(nn.Module):
 
         for k, op in enumerate(g.operators):
             name, ins, out = op.name, op.inputs, op.outputs[0]
-            if name == "DEQUANTIZE":
-                if g.tensors[ins[0]].data is not None:  # weights: converted in __init__
+            if name in ("DEQUANTIZE", "DENSIFY"):
+                if g.tensors[ins[0]].data is not None or ins[0] not in values:  # weights: done in __init__
                     continue
+                if name == "DENSIFY":
+                    raise ValueError(f"{g.source}: DENSIFY of a computed tensor is not supported")
                 values[out] = values[ins[0]].float()
                 if ins[0] in nchw:
                     nchw.add(out)
@@ -346,6 +486,20 @@ class TfliteModule(nn.Module):
                     shape = [int(v) for v in np.asarray(g.tensors[ins[1]].data).reshape(-1)]
                 shape = [x.shape[0]] + list(shape[1:])  # batch follows the input
                 values[out] = x.reshape(shape)
+            elif name == "RESIZE_BILINEAR":
+                if ins[0] not in nchw:
+                    raise ValueError(f"{g.source}: RESIZE_BILINEAR of a non-image tensor is not supported")
+                size = g.tensors[ins[1]].data
+                if size is None:
+                    raise ValueError(f"{g.source}: RESIZE_BILINEAR with a computed size is not supported")
+                values[out] = resize_bilinear_tf(values[ins[0]], tuple(int(v) for v in np.asarray(size).reshape(-1)),
+                                                 op.options["align_corners"], op.options["half_pixel_centers"])
+                nchw.add(out)
+            elif name == "DEPTH_TO_SPACE":
+                if ins[0] not in nchw:
+                    raise ValueError(f"{g.source}: DEPTH_TO_SPACE of a non-image tensor is not supported")
+                values[out] = depth_to_space(values[ins[0]], op.options["block_size"])
+                nchw.add(out)
             elif name == "CONCATENATION":
                 axis = op.options["axis"]
                 parts = [self._value(values, i) for i in ins]
