@@ -365,6 +365,10 @@ def simulate_dynamics(model: FaceModel, *, motions: Sequence[str], expressions: 
                          f"{list(motions)}, {list(expressions)}")
     for program in motions:
         parse_program(program)
+    from scipy import sparse
+
+    from .skin_kernels import GaussianSmoothing, integrate
+
     names = list(model.expression_names)
     root = np.random.SeedSequence(seed)
     id_stream = root.spawn(1)[0]
@@ -376,7 +380,7 @@ def simulate_dynamics(model: FaceModel, *, motions: Sequence[str], expressions: 
     rest = base.astype(np.float64)
     pivot = default_pivot(model.neutral)
     edges = vertex_neighbours(rest, model.faces)
-    smooth = smoothing_matrix(rest) if stretch_stiffening > 0 else None
+    smooth = GaussianSmoothing(rest) if stretch_stiffening > 0 else None  # smoothing_matrix's product
     loose = looseness_field(rest)
     omega = 2 * np.pi * stiffness_scale * _F_STIFF_HZ ** (1 - loose) * _F_LOOSE_HZ ** loose
     zeta = damping_scale * (0.45 - 0.15 * loose)
@@ -423,24 +427,21 @@ def simulate_dynamics(model: FaceModel, *, motions: Sequence[str], expressions: 
     stiff_h = (h * stiff).astype(np.float32)
     held = [s for s, (expression, _) in enumerate(pairs) if expression != "speech"]
     moving = [s for s, (expression, _) in enumerate(pairs) if expression == "speech"]
-    block = np.empty((nseg, 64, v), np.float32)
-    if held:  # held expressions: one stiffness modulation for the whole segment
-        block[held] = _kappa(shapes[held, 0], rest, edges, stretch_stiffening, smooth)[:, None] * stiff_h
-    for f in range(total):
-        if f % 64 == 0 and moving:  # time-varying expressions: modulation in blocks of frames
-            part = _kappa(shapes[moving, f:f + 64], rest, edges, stretch_stiffening, smooth) * stiff_h
-            block[moving, :part.shape[1]] = part
-        k_h = block[:, f % 64, :, None]
-        for sub in range(substeps):
-            a = rest_h @ np.swapaxes(affine[:, f * substeps + sub], 1, 2)  # (nseg, V, 3), h * a
-            du -= a
-            du -= damp_h * du
-            du -= k_h * u
-            if coupling is not None:  # membrane coupling: h c^2 sum_j w_ij (u_j - u_i)
-                du += (coupling @ u.transpose(1, 0, 2).reshape(v, -1)).reshape(v, nseg, 3).transpose(1, 0, 2)
-            u += np.float32(h) * du
-        if f >= pre:
-            offsets[:, f - pre] = u
+    if coupling is None:
+        coupling = sparse.csr_matrix((v, v), dtype=np.float32)
+    coupling.sort_indices()
+    held_kappa = (_kappa(shapes[held, 0], rest, edges, stretch_stiffening, smooth)[:, None] * stiff_h
+                  if held else None)  # held expressions: one stiffness modulation for the whole segment
+    for f0 in range(0, total, 64):  # time-varying expressions: modulation in blocks of frames
+        n = min(64, total - f0)
+        block = np.empty((nseg, n, v), np.float32)
+        if held:
+            block[held] = held_kappa
+        if moving:
+            block[moving] = _kappa(shapes[moving, f0:f0 + n], rest, edges, stretch_stiffening, smooth) * stiff_h
+        integrate(u, du, rest_h, affine, damp_h.reshape(v), block, coupling.indptr.astype(np.int64),
+                  coupling.indices.astype(np.int64), coupling.data.astype(np.float32), substeps, h, f0, pre,
+                  offsets)
     mats = np.ascontiguousarray(mats_frame[:, pre:].reshape(-1, 4, 4))
     quasi_local = shapes[:, pre:].reshape(-1, v, 3)
     capture = transform_points(mats, quasi_local + offsets.reshape(-1, v, 3))
