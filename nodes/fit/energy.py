@@ -21,6 +21,14 @@ The edges `(i, j)` are consecutive points along each contour of the 68 Multi-PIE
 (jaw, brows, nose, eyes, lips): the paper's edge-preserving term, which keeps the projected
 size right when a few landmarks are off.
 
+**Iris centres** (`iris_model_points`, `iris_points`): the ICT head's eyeballs do not move with
+its eyeLook shapes (those only move the lids), so the fit turns each eyeball by the weights as the
+exporters read them (`nodes.io.arkit.eye_angles`: a full shape is `EYE_RANGE_RAD` of yaw or
+pitch, `R = R_y(yaw) R_x(pitch)`) about its centre (a sphere fitted to the eyeball); the iris
+centre is the eyeball's front-most vertex so turned. The stage solve re-linearizes it about the
+current weights at every step, as it does the rotation, and compares it with the plate's relative
+to the eye's corners (`iris_relative`), so that the head pose's error does not read as a look.
+
 Torch is imported at the top: import this module from node `run()` methods only.
 """
 
@@ -31,12 +39,14 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import project_points_torch
+from ..io.arkit import EYE_RANGE_RAD
 from ..geometry.rotation import axis_angle_to_rotmat_torch as axis_angle_to_rotmat  # the fit's name
 from ..geometry.rotation import rotmat_to_axis_angle
 from ..geometry.rotation import skew_torch as _skew
 
 __all__ = ["CROP_UNITS_PX", "EDGES_68", "landmark_weights", "axis_angle_to_rotmat", "rotmat_to_axis_angle",
-           "posed_anchor_points", "project_views", "landmark_energy"]
+           "posed_anchor_points", "project_views", "landmark_energy", "IRIS_EYEBALLS", "EYE_LOOK_ROTATIONS",
+           "IRIS_CORNERS_68", "iris_relative", "eye_look_shapes", "iris_model_points", "iris_points"]
 
 CROP_UNITS_PX = 256.0
 """Residuals are measured in pixels of a crop box resized to this side (the paper's 256)."""
@@ -88,6 +98,117 @@ def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0, 
     elif set_name != "all":
         raise ValueError(f"set_name: expected 'non_jaw', 'jaw' or 'all', found {set_name!r}")
     return w
+
+
+IRIS_EYEBALLS = ("eyeball_right", "eyeball_left")
+"""The model's vertex groups of iris eye 0 (the subject's right, `nodes.landmarks.iris`) and eye 1."""
+
+EYE_LOOK_ROTATIONS = {"eyeLookDown_R": (0, (1.0, 0.0, 0.0)), "eyeLookUp_R": (0, (-1.0, 0.0, 0.0)),
+                      "eyeLookIn_R": (0, (0.0, 1.0, 0.0)), "eyeLookOut_R": (0, (0.0, -1.0, 0.0)),
+                      "eyeLookDown_L": (1, (1.0, 0.0, 0.0)), "eyeLookUp_L": (1, (-1.0, 0.0, 0.0)),
+                      "eyeLookIn_L": (1, (0.0, -1.0, 0.0)), "eyeLookOut_L": (1, (0.0, 1.0, 0.0))}
+"""Eye (index into `IRIS_EYEBALLS`) and rotation axis of each eyeLook shape, model frame (x the
+subject's left, y up, z out of the face), right-handed: about +x turns the gaze down, about +y
+towards the subject's left (`nodes.io.arkit.eye_angles`' yaw and pitch)."""
+
+
+IRIS_CORNERS_68 = np.array([[36, 39], [42, 45]])
+"""The Multi-PIE eye corners of iris eye 0 (the subject's right) and eye 1: the iris residuals are
+taken relative to their midpoint (`iris_relative`)."""
+
+
+def iris_relative(values: Tensor) -> Tensor:
+    """Make the last two points' rows (the iris centres) relative to their eye's corner midpoint.
+
+    Applied to residuals `(target - predicted)` (or their Jacobian rows), it compares where each
+    iris sits between its eye's corners on the plate and on the model: an error of the head's pose
+    moves both alike and drops out to first order (a translation error of 0.3 cm is half a full
+    look of the iris alone).
+
+    Args:
+        values: (B, C, L, ...) with the 68 Multi-PIE points first and the two iris centres last.
+    Returns:
+        the same shape; rows L-2, L-1 minus the mean of rows `IRIS_CORNERS_68`.
+    """
+    corners = torch.as_tensor(IRIS_CORNERS_68, device=values.device)
+    mid = values[:, :, corners].mean(3)  # (B, C, 2, ...)
+    return torch.cat([values[:, :, :-2], values[:, :, -2:] - mid], 2)
+
+
+def eye_look_shapes(names: list[str]) -> list[int]:
+    """Indices of the model's eyeLook shapes (`EYE_LOOK_ROTATIONS`' names it has), in model order."""
+    return [i for i, n in enumerate(names) if n in EYE_LOOK_ROTATIONS]
+
+
+def iris_model_points(neutral: np.ndarray, eyeballs: list[np.ndarray], names: list[str], *,
+                      angle: float = EYE_RANGE_RAD) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The model's two eyes for `iris_points`: front vertices, centres, and each shape's turn.
+
+    Args:
+        neutral: (V, 3) the model's neutral (identity applied), cm, model frame.
+        eyeballs: two vertex index arrays, the eyeballs of iris eye 0 and eye 1 (`IRIS_EYEBALLS`).
+        names: the K expression names.
+        angle: eye rotation of a full shape, radians.
+    Returns:
+        front (2, 3) the iris centres at weight 0 (each eyeball's front-most vertex, largest z), cm;
+        centres (2, 3) the eyeballs' centres of rotation (least-squares spheres), cm; turns
+        (K, 2, 2) yaw and pitch of each eye per unit weight of each shape, radians (0 for shapes
+        other than `EYE_LOOK_ROTATIONS`).
+    Raises:
+        ValueError: an eyeball with fewer than 4 vertices.
+
+    Example:
+        >>> ball = np.concatenate([np.eye(3), -np.eye(3)])  # unit octahedron: front vertex (0, 0, 1)
+        >>> front, centres, turns = iris_model_points(np.concatenate([ball, ball]), [np.arange(6), np.arange(6, 12)],
+        ...                                           ["eyeLookOut_L", "eyeLookDown_R"], angle=0.5)
+        >>> front[1].tolist(), (np.round(centres[1], 6) + 0.0).tolist(), turns.tolist()
+        ([0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [[[0.0, 0.0], [0.5, 0.0]], [[0.0, 0.5], [0.0, 0.0]]])
+    """
+    neutral = np.asarray(neutral, np.float64)
+    front = np.zeros((2, 3))
+    centres = np.zeros((2, 3))
+    for e, idx in enumerate(eyeballs):
+        ball = neutral[np.asarray(idx)]
+        if len(ball) < 4:
+            raise ValueError(f"eyeball {IRIS_EYEBALLS[e]}: expected at least 4 vertices, found {len(ball)}")
+        a = np.concatenate([2.0 * ball, np.ones((len(ball), 1))], 1)  # |x|^2 = 2 c.x + (r^2 - |c|^2)
+        centres[e] = np.linalg.lstsq(a, (ball ** 2).sum(1), rcond=None)[0][:3]
+        front[e] = ball[np.argmax(ball[:, 2])]
+    turns = np.zeros((len(names), 2, 2))
+    for k, name in enumerate(names):
+        if name in EYE_LOOK_ROTATIONS:
+            e, axis = EYE_LOOK_ROTATIONS[name]
+            turns[k, e] = np.array([axis[1], axis[0]]) * angle  # yaw about y, pitch about x
+    return front, centres, turns
+
+
+def iris_points(front: Tensor, centres: Tensor, turns: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """The iris centres at the weights and their derivatives in the weights, model frame.
+
+    `p_e(w) = c_e + R_y(yaw_e) R_x(pitch_e) (f_e - c_e)` with `(yaw_e, pitch_e) = sum_k w_k turns[k, e]`.
+
+    Args:
+        front: (2, 3) front vertices, cm; centres: (2, 3) cm; turns: (K, 2, 2) radians per unit
+            weight (`iris_model_points`).
+        weights: (B, K) expression weights.
+    Returns:
+        (B, 2, 3) iris centres, cm, and (B, 2, K, 3) d p / d w, cm per unit weight.
+    """
+    angles = torch.einsum("bk,ked->bed", weights, turns.to(weights.dtype))  # (B, 2, 2)
+    zero = torch.zeros_like(angles[..., 0])
+    rot_y = axis_angle_to_rotmat(torch.stack([zero, angles[..., 0], zero], -1))  # (B, 2, 3, 3)
+    rot_x = axis_angle_to_rotmat(torch.stack([angles[..., 1], zero, zero], -1))
+    v = front.to(weights.dtype) - centres.to(weights.dtype)
+    vx = (rot_x @ v[None, :, :, None])[..., 0]  # R_x v, (B, 2, 3)
+    turned = (rot_y @ vx[..., None])[..., 0]
+    e_x = torch.tensor([1.0, 0.0, 0.0], dtype=weights.dtype, device=weights.device)
+    e_y = torch.tensor([0.0, 1.0, 0.0], dtype=weights.dtype, device=weights.device)
+    d_yaw = torch.linalg.cross(e_y.expand_as(turned), turned)
+    d_pitch = (rot_y @ torch.linalg.cross(e_x.expand_as(vx), vx)[..., None])[..., 0]
+    t = turns.to(weights.dtype)
+    deriv = d_yaw[:, :, None] * t[None, :, :, 0].permute(0, 2, 1)[..., None] \
+        + d_pitch[:, :, None] * t[None, :, :, 1].permute(0, 2, 1)[..., None]
+    return centres.to(weights.dtype) + turned, deriv
 
 
 def posed_anchor_points(neutral: Tensor, deltas: Tensor, weights: Tensor, rot: Tensor, trans: Tensor) -> Tensor:

@@ -86,12 +86,26 @@ def _checked_plates(images: list[ImageSequence], cameras: list[Camera], frames: 
     return [_linear_rgb(seq) for seq in images]
 
 
+def _iris_centres(iris: list[Landmarks2D], cameras: list[Camera], frames: int) -> np.ndarray:
+    """(F, C, 2, 2) iris centres (eye 0 the subject's right) of the `iris` port's (F, 10, 2) points
+    (`landmarks.TrackFaces`: each eye's centre, then 4 rim points), NaN where not read."""
+    if len(iris) != len(cameras):
+        raise InputError("iris", f"expected one iris input per camera ({len(cameras)}), found {len(iris)}")
+    for c, points in enumerate(iris):
+        if points.points.shape != (frames, 10, 2):
+            raise InputError("iris", f"camera {c}: expected ({frames}, 10, 2) iris points (5 per eye, the centre "
+                             f"first; landmarks.TrackFaces), found {points.points.shape}")
+    return np.stack([points.points[:, [0, 5]] for points in iris], 1).astype(np.float32)
+
+
 def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera], device: str,
            select: np.ndarray | None = None, allow_mesh: bool = False,
-           plates: list[np.ndarray] | None = None, plates_selected: bool = False) -> Any:
+           plates: list[np.ndarray] | None = None, plates_selected: bool = False,
+           iris: list[Landmarks2D] | None = None) -> Any:
     """FitViews of the landmarks: targets (F, C, 68, 2), or with `allow_mesh` and 468-point
     landmarks (F, C, 68 + 400, 2): the 68 Multi-PIE points, then `MESH_EXTRA_POINTS`. With
-    `plates` (`_checked_plates`), their crops too (for the photometric term)."""
+    `plates` (`_checked_plates`), their crops too (for the photometric term); with `iris`, the
+    iris centres (`_iris_centres`; NaN where the face was not seen)."""
     import torch
 
     from ..landmarks.correspondence import MEDIAPIPE_TO_68, MESH_EXTRA_POINTS
@@ -107,8 +121,11 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
     conf = np.stack([lm.confidence.min(1) for lm in landmarks], 1)  # (F, C)
     box = np.stack([b.values for b in boxes], 1).astype(np.float32)
     seen = np.isfinite(pts).all((2, 3)) & np.isfinite(box).all(2) & (conf >= _MIN_PRESENCE)
+    centres = _iris_centres(iris, cameras, len(pts)) if iris is not None else None
     frames = np.arange(len(pts)) if select is None else np.asarray(select)
     pts, box, seen = pts[frames], box[frames], seen[frames]
+    if centres is not None:
+        centres = np.where(seen[..., None, None], centres[frames], np.nan)
     pts = np.where(seen[..., None, None], pts, 0.0)
     box = np.where(seen[..., None], box, np.array([0.0, 0.0, 1.0, 1.0], np.float32))
     t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=device)  # noqa: E731
@@ -118,7 +135,8 @@ def _views(landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: li
     return FitViews(t(pts), t(box), torch.as_tensor(seen, device=device),
                     t(np.stack([c.world_to_camera for c in cameras])),
                     t([[c.fx, c.fy, c.cx, c.cy] for c in cameras]), t(dist) if np.abs(dist).max() > 0 else None,
-                    t([[c.width, c.height] for c in cameras]), crops)
+                    t([[c.width, c.height] for c in cameras]), crops,
+                    None if centres is None else t(centres))
 
 
 def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -130,7 +148,9 @@ def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndar
         raise InputError("appearance", str(err).removeprefix("appearance: ")) from err
 
 
-def _fit_model(model: FaceModel, appearance: JsonValue | None, device: str) -> Any:
+def _fit_model(model: FaceModel, appearance: JsonValue | None, device: str, iris: bool = False) -> Any:
+    """The FitModel of the model and appearance; with `iris`, its eyes as the eyeLook shapes turn
+    them (`nodes.fit.energy.iris_model_points`, from the eyeball groups)."""
     from .views import FitModel
 
     albedo, sh, background, hidden = _appearance(model, appearance)
@@ -140,8 +160,22 @@ def _fit_model(model: FaceModel, appearance: JsonValue | None, device: str) -> A
     noise = float(appearance.value.get("noise", 0.0)) if appearance is not None else 0.0
     if not np.isfinite(noise) or noise < 0:
         raise InputError("appearance", f"'noise': expected a standard deviation >= 0, found {noise}")
-    return FitModel.build(model.neutral, model.expression_deltas, model.expression_names, faces, model.landmarks,
-                          albedo, sh, background, device, noise=noise)
+    fm = FitModel.build(model.neutral, model.expression_deltas, model.expression_names, faces, model.landmarks,
+                        albedo, sh, background, device, noise=noise)
+    if not iris:
+        return fm
+    import torch
+
+    from .energy import IRIS_EYEBALLS, iris_model_points
+
+    missing = [g for g in IRIS_EYEBALLS if g not in model.groups]
+    if missing:
+        raise InputError("model", f"expected the eyeball vertex groups {list(IRIS_EYEBALLS)} to read the iris, "
+                         f"found no {missing} (groups: {sorted(model.groups)})")
+    front, centres, turns = iris_model_points(model.neutral, [model.groups[g] for g in IRIS_EYEBALLS],
+                                              list(model.expression_names))
+    t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
+    return dataclasses.replace(fm, iris=t(front), iris_centres=t(centres), iris_turns=t(turns))
 
 
 def _pose_values(state: Any) -> np.ndarray:

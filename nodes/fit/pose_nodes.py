@@ -2,7 +2,8 @@
 
 - `fit.RigidPose`: rigid head pose per frame (translation, then rotation + translation on the
   non-jaw, jaw and all landmarks);
-- `fit.Expression`: jaw and mouth weights per frame from the rigid pose (or with it held).
+- `fit.Expression`: jaw and mouth weights per frame from the rigid pose (or with it held), and
+  the eyeLook weights from the plate's iris centres where they are connected.
 
 Both are framewise (chunks run in parallel); `_run_fit` solves `batch` frames together.
 Multi-camera: the list ports `landmarks`, `boxes` and `cameras` take one connection per camera,
@@ -51,16 +52,23 @@ class _FitParams(NodeParams):
 
 def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: list[ParamSequence],
              cameras: list[Camera], model: FaceModel, appearance: JsonValue | None,
-             start: np.ndarray | None, images: list[ImageSequence] | None = None) -> dict[str, Any]:
+             start: np.ndarray | None, images: list[ImageSequence] | None = None,
+             iris: list[Landmarks2D] | None = None) -> dict[str, Any]:
     import torch
 
     from ..landmarks.network import load_face_mesh
-    from .solve import RIGID_STAGES, expression_stages, fit_stages, initial_pose, refine_backprop
+    from .solve import RIGID_STAGES, expression_stages, eye_stage, fit_stages, initial_pose, refine_backprop
 
     p = node.params
     torch.manual_seed(node.seed)
     dev = node.device
-    fm = _fit_model(model, appearance, dev)
+    eyes = None
+    if iris is not None and start is not None and getattr(p, "iris_weight", 0.0) > 0:
+        try:
+            eyes = eye_stage(model.expression_names, iris_weight=p.iris_weight, prior=p.eye_prior)
+        except ValueError as err:
+            raise InputError("model", f"to read the iris: {err}") from err
+    fm = _fit_model(model, appearance, dev, iris=eyes is not None)
     views = _views(landmarks, boxes, cameras, dev)
     frames = views.seen.shape[0]
     plates = _checked_plates(images, cameras, frames) if images else None
@@ -76,7 +84,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     idx = np.flatnonzero(found)
     for n0 in range(0, len(idx), p.batch):
         sel = idx[n0:n0 + p.batch]
-        sub = _views(landmarks, boxes, cameras, dev, select=sel, plates=plates if photo else None)
+        sub = _views(landmarks, boxes, cameras, dev, select=sel, plates=plates if photo else None,
+                     iris=iris if eyes is not None else None)
         if start is None:
             state = initial_pose(fm, sub)
             stages, first_on_landmarks = RIGID_STAGES, True
@@ -84,6 +93,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
             state = _state_from(start[sel, :12], np.nan_to_num(start[sel, 12:12 + k]) if start.shape[1] > 12
                                 else np.zeros((len(sel), k), np.float32), dev)
             stages, first_on_landmarks = expression_stages(model.expression_names), False
+            if eyes is not None:
+                stages = stages + (eyes,)
             if getattr(p, "hold_pose", False):
                 stages = tuple(dataclasses.replace(stage, rotation=False, translation=False) for stage in stages)
         state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
@@ -138,13 +149,22 @@ class _ExpressionParams(_FitParams):
     hold_pose: bool = Param(False, description="Keep the rigid pose of `pose` fixed in every stage (re-estimating "
                             "the expression after temporal smoothing of the rigid motion); frames without "
                             "landmarks then keep the input's values instead of failing.")
+    iris_weight: float = Param(1.0, ge=0, description="Weight of each iris centre (the `iris` port) in a last "
+                               "stage that solves the eight eyeLook weights (the 68 points weigh 1): the model's "
+                               "iris centre, its eyeball's front turned by EYE_RANGE_RAD (30 deg) per unit "
+                               "weight, against the plate's; 0 = the eyeLook weights are not solved.")
+    eye_prior: float = Param(4.0, ge=0, description="lambda of the L2 prior on the eyeLook weights, 256-crop "
+                             "pixel^2 per unit weight^2 (a unit weight moves the iris centre at least 9.4 such "
+                             "pixels in tests/nodes/fit/test_eye_look.py's shot, crops 1.3 landmark extents wide, "
+                             "so 4 shrinks a clean reading by at most 4%).")
 
 
 class Expression(Node):
-    """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose."""
+    """Jaw and mouth weights per frame (jaw open; all jaw; jaw + mouth with the rigid pose), from the rigid pose;
+    the eyeLook weights from the plate's iris centres when `iris` is connected."""
 
     type_name = "fit.Expression"
-    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
+    version = 7  # 7: eyeLook weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _ExpressionParams
@@ -160,6 +180,9 @@ class Expression(Node):
                 "the photometric term (landmarks only when absent).")
     keep = In(ParamSequence, optional=True, doc="(F, 1+) 1 in column 0: frames passed through unchanged from "
               "`pose` (e.g. frames filled by flow whose plates gave no usable landmarks).")
+    iris = In(Landmarks2D, many=True, optional=True, doc="(F, 10, 2) iris points, pixels, one per camera in the "
+              "same order (landmarks.TrackFaces: the subject's right eye's centre and 4 rim points, then the "
+              "left's; NaN where not read): the eyeLook weights are solved from the centres (`iris_weight`).")
     fitted = Out(ParamSequence, doc="r00..r22, tx ty tz (cm), then one column per expression weight.")
     mesh = Out(MeshSequence, doc="(F, V, 3) the fitted head, world frame, cm (the unposed neutral where "
                   "failed: read `failed`).")
@@ -168,7 +191,8 @@ class Expression(Node):
 
     def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
             model: FaceModel, pose: ParamSequence, appearance: JsonValue | None = None,
-            keep: ParamSequence | None = None, images: list[ImageSequence] | None = None) -> dict[str, Any]:
+            keep: ParamSequence | None = None, images: list[ImageSequence] | None = None,
+            iris: list[Landmarks2D] | None = None) -> dict[str, Any]:
         k = len(model.expression_names)
         start = np.asarray(pose.values, np.float32)
         if start.shape[1] not in (12, 12 + k):
@@ -178,7 +202,7 @@ class Expression(Node):
             raise InputError("keep", f"expected ({len(start)}, 1+) flags, found {keep.values.shape}")
         passed = flags_to_mask(keep, len(start), name=keep.names[0] if keep is not None else "", where="keep")
         out = _run_fit(self, "expression", landmarks, boxes, cameras, model, appearance,
-                       np.where(passed[:, None], np.nan, start), images)
+                       np.where(passed[:, None], np.nan, start), images, iris or None)
         finite = np.isfinite(start).all(1) if start.shape[1] == 12 + k else np.zeros(len(start), bool)
         through = finite & (passed | (out["failed"] & self.params.hold_pose))
         if through.any():

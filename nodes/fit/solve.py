@@ -8,7 +8,10 @@ the previous stage:
 - rigid (`RIGID_STAGES`): translation on the non-jaw landmarks; rotation and translation on
   the non-jaw, then the jaw, then all landmarks;
 - expression (`expression_stages`): jaw open only (lips weighted up), all jaw shapes, then
-  all jaw and mouth shapes together with the rigid pose; the L2 prior `lambda sum w^2`.
+  all jaw and mouth shapes together with the rigid pose; the L2 prior `lambda sum w^2`;
+- eyes (`eye_stage`, where the plate's iris centres are known): the eight eyeLook shapes, with
+  the two iris centres as two more points (`nodes.fit.energy.iris_points`: the eyeballs turned by
+  the weights, re-linearized at every step; no render offset) and their own, weaker prior.
 
 Solver (`fit_stages`): the render landmarks `q = N(F(x_R))` are linearized about the
 current estimate through *anchors* (`nodes.fit.views`): the head is rendered, the network
@@ -39,13 +42,13 @@ from torch import Tensor
 from ..geometry.image import crop_to_image
 from ..geometry.lm import LMSchedule, levenberg_marquardt
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
-from .energy import (EDGES_68, _skew, axis_angle_to_rotmat, landmark_energy, landmark_weights, posed_anchor_points,
-                     project_views, project_views_jacobian)
+from .energy import (EDGES_68, _skew, axis_angle_to_rotmat, eye_look_shapes, iris_points, iris_relative,
+                     landmark_energy, landmark_weights, posed_anchor_points, project_views, project_views_jacobian)
 from .photometric import PhotoSamples, PhotoTerm, photometric_samples
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, landmark_anchors, network_points,
                     render_crops)
 
-__all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "jaw_shapes", "mouth_shapes",
+__all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "eye_stage", "jaw_shapes", "mouth_shapes",
            "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]
 
 BOUND_PENALTY = 1e4
@@ -89,6 +92,9 @@ class Stage:
         landmarks: "non_jaw", "jaw" or "all" (`nodes.fit.energy.landmark_weights`).
         mouth_weight: weight of the lip points 48-67.
         jaw_weight: weight of the jaw contour points 0-16 when `landmarks` is "all".
+        iris_weight: weight of each of the two iris centres (`FitViews.iris`, `FitModel.iris`;
+            0 = not used, and not used where either is None).
+        prior: lambda of this stage's L2 prior on the active weights; None = the solve's.
     """
 
     name: str
@@ -98,6 +104,8 @@ class Stage:
     landmarks: str = "all"
     mouth_weight: float = 1.0
     jaw_weight: float = 1.0
+    iris_weight: float = 0.0
+    prior: float | None = None
 
 
 RIGID_STAGES = (
@@ -128,6 +136,55 @@ def expression_stages(names: list[str]) -> tuple[Stage, ...]:
     return (Stage("jaw_open", False, False, (names.index("jawOpen"),), "all", mouth_weight=2.0),
             Stage("jaw", False, False, jaw, "all"),
             Stage("jaw_mouth", True, True, both, "all"))
+
+
+def eye_stage(names: list[str], *, iris_weight: float = 1.0, prior: float = 4.0) -> Stage:
+    """The eyeLook shapes from the iris centres (and the lids' points), pose held; a frame whose
+    iris was not read keeps its weights (`solve_stage`).
+
+    Args:
+        names: the model's expression names (needs the eight eyeLook shapes).
+        iris_weight: weight of each iris centre (the landmarks weigh 1).
+        prior: lambda of the L2 prior on the eyeLook weights, 256-crop pixel^2 per unit weight^2.
+    Raises:
+        ValueError: a model without the eight eyeLook shapes.
+    """
+    shapes = tuple(eye_look_shapes(names))
+    if len(shapes) != 8:
+        raise ValueError(f"expression names: expected the eight eyeLook{{In,Out,Up,Down}}_{{L,R}} shapes, found "
+                         f"{[names[i] for i in shapes]}")
+    return Stage("eyes", False, False, shapes, "all", iris_weight=iris_weight, prior=prior)
+
+
+def _with_iris(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors,
+               w_lm: Tensor) -> tuple[FitViews, Anchors, Tensor, bool]:
+    """The stage's targets with the plate's two iris centres appended (L -> L + 2) when it uses them.
+
+    Their weight is `stage.iris_weight` (0 where not read) and their offset 0; the matching model
+    points come from `_iris_rows`. Returns views, anchors, w_lm (as given, or (B, C, L + 2)) and whether
+    the iris was appended.
+    """
+    if stage.iris_weight <= 0 or model.iris is None or views.iris is None:
+        return views, anchors, w_lm, False
+    w3 = w_lm if w_lm.ndim == 3 else w_lm.expand(*views.target.shape[:3])
+    b, c = views.seen.shape
+    found = torch.isfinite(views.iris).all(-1) & views.seen[..., None]  # (B, C, 2)
+    target = torch.cat([views.target, torch.where(found[..., None], views.iris, 0.0).to(views.target.dtype)], 2)
+    offset = torch.cat([anchors.offset, torch.zeros(b, c, 2, 2, dtype=anchors.offset.dtype,
+                                                    device=anchors.offset.device)], 2)
+    w_iris = found.to(w3.dtype) * float(stage.iris_weight)
+    return (dataclasses.replace(views, target=target), anchors._replace(offset=offset), torch.cat([w3, w_iris], 2),
+            True)
+
+
+def _iris_rows(model: FitModel, weights: Tensor, c: int) -> tuple[Tensor, Tensor]:
+    """The iris centres as anchored points, linear in the weights about `weights` (B, K): neutral
+    (B, C, 2, 3) and shapes (B, C, 2, K, 3) such that `neutral + sum_k w_k shape_k` is the exact
+    turned centre (`nodes.fit.energy.iris_points`) at `weights`, with its derivative."""
+    point, deriv = iris_points(model.iris, model.iris_centres, model.iris_turns, weights)
+    base = point - torch.einsum("bk,bekd->bed", weights, deriv)
+    b = weights.shape[0]
+    return base[:, None].expand(b, c, *base.shape[1:]), deriv[:, None].expand(b, c, *deriv.shape[1:])
 
 
 class PoseState(NamedTuple):
@@ -181,13 +238,16 @@ def predicted_points(model: FitModel, views: FitViews, anchors: Anchors, state: 
 
 def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: Anchors, rot0: Tensor,
                      base_weights: Tensor, shapes: Tensor, w_lm: Tensor, *, prior: float, edge_weight: float,
-                     rigid_prior: PoseState | None, rigid_prior_weight: float) -> Callable[[Tensor], Tensor]:
+                     rigid_prior: PoseState | None, rigid_prior_weight: float,
+                     iris: bool = False) -> Callable[[Tensor], Tensor]:
     """A stage's energy as a sum of squares: x (B, 6 + S) -> residuals (B, M).
 
     x = [omega (3), t (3) cm, the S active weights]; `R = exp([omega]) rot0`. The residuals are,
     in order: data (C*L*2), edges (C*E*2, if mu > 0), prior (S), bound penalty (S), rigid
     prior (12, if any), so that `sum r^2` is `landmark_energy` + the prior + the bound
-    penalty + the rigid prior of `solve_stage`. `w_lm` is (L,) or (B, C, L).
+    penalty + the rigid prior of `solve_stage`. `w_lm` is (L,) or (B, C, L). With `iris`, the
+    last two points are the iris centres, compared relative to their eyes' corners
+    (`nodes.fit.energy.iris_relative`).
     """
     a, b = EDGES_68[:, 0], EDGES_68[:, 1]
     scale = views.scale
@@ -205,6 +265,8 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
         pts = posed_anchor_points(neutral, deltas, weights, rot, trans)
         pred = project_views(pts, views.world_to_camera, views.intrinsics, views.distortion) + anchors.offset
         r = (views.target - pred) * scale[..., None, None]  # (B, C, 68, 2)
+        if iris:
+            r = iris_relative(r)
         parts = [(r * sw).flatten(1)]
         if edge_weight > 0:
             parts.append(((r[:, :, b] - r[:, :, a]) * ew).flatten(1))
@@ -223,7 +285,7 @@ def _stage_residuals(neutral: Tensor, deltas: Tensor, views: FitViews, anchors: 
 def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tensor, base_weights: Tensor,
                     shapes: Tensor, w_lm: Tensor, x: Tensor, *, prior: float, edge_weight: float,
                     rigid_prior: PoseState | None, rigid_prior_weight: float,
-                    extra: Tensor | None = None) -> Tensor:
+                    extra: Tensor | None = None, iris: bool = False) -> Tensor:
     """The Jacobian of `_stage_residuals`' function at x (B, 6 + S) with omega = 0, by hand.
 
     The landmark rows chain `project_views_jacobian` with the anchored points' derivatives:
@@ -237,6 +299,7 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
         x: the unknowns (omega = 0).
         extra: (B, C, L, X, 3) the anchored points' local derivatives in X further linear
             unknowns (the identity), or None.
+        iris: as in `_stage_residuals`.
     Returns:
         (B, M, 6 + S (+ X)).
     """
@@ -258,6 +321,8 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
     d_world = torch.cat(cols, -1)  # (B, C, L, 3, P)
     n_all = d_world.shape[-1]
     jac = -views.scale[..., None, None, None] * (d_pix @ d_world)  # (B, C, L, 2, P): r = (target - pred) scale
+    if iris:
+        jac = iris_relative(jac)
     parts = [(jac * sw).reshape(bsz, -1, n_all)]
     if edge_weight > 0:
         ew = ((w3[..., a] > 0) & (w3[..., b] > 0)).to(dt)[..., None, None] * float(edge_weight) ** 0.5
@@ -324,6 +389,10 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     dev, dt = neutral.device, neutral.dtype
     w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight, jaw=stage.jaw_weight)
     w_lm = torch.as_tensor(w_np, dtype=dt, device=dev)
+    views, anchors, w_lm, iris = _with_iris(stage, model, views, anchors, w_lm)
+    n_cams = views.seen.shape[1]
+    if stage.prior is not None:
+        prior = stage.prior
     shapes = torch.as_tensor(list(stage.shapes), dtype=torch.long, device=dev)
     free = torch.as_tensor([stage.rotation] * 3 + [stage.translation] * 3 + [True] * len(stage.shapes), device=dev)
     free_idx = torch.nonzero(free)[:, 0]
@@ -339,9 +408,14 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     def linearize(rot: Tensor, trans: Tensor,
                   weights: Tensor) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor], Tensor]:
         """The residual function of the free unknowns about the current state, its Jacobian, and x."""
-        fn = _stage_residuals(neutral, deltas, views, anchors, rot, weights, shapes, w_lm, prior=prior,
+        if iris:  # the iris centres' turn, re-linearized about the current weights (as the rotation)
+            rows = _iris_rows(model, weights, n_cams)
+            at_n, at_d = torch.cat([neutral, rows[0]], 2), torch.cat([deltas, rows[1]], 2)
+        else:
+            at_n, at_d = neutral, deltas
+        fn = _stage_residuals(at_n, at_d, views, anchors, rot, weights, shapes, w_lm, prior=prior,
                               edge_weight=edge_weight, rigid_prior=rigid_prior,
-                              rigid_prior_weight=rigid_prior_weight)
+                              rigid_prior_weight=rigid_prior_weight, iris=iris)
         x0 = unknowns(trans, weights)
         term = PhotoTerm.about(photo, views, photo_weight, weights, shape_list, p_basis) if use_photo else None
 
@@ -352,9 +426,9 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
 
         def jacobian(xf: Tensor) -> Tensor:
             xa = full(xf, x0)
-            jac = _stage_jacobian(neutral, deltas, views, rot, weights, shapes, w_lm, xa, prior=prior,
+            jac = _stage_jacobian(at_n, at_d, views, rot, weights, shapes, w_lm, xa, prior=prior,
                                   edge_weight=edge_weight, rigid_prior=rigid_prior,
-                                  rigid_prior_weight=rigid_prior_weight)[:, :, free_idx]
+                                  rigid_prior_weight=rigid_prior_weight, iris=iris)[:, :, free_idx]
             if term is None:
                 return jac
             _, jac_p = term.jacobian(rot, xa[:, 3:6], xa[:, 6:])
@@ -391,6 +465,9 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         else:
             r = now["residuals"](x)
         rot, trans, weights = now["rot"], now["trans"], now["weights"]
+        if iris:  # a frame whose iris no camera read keeps its eyeLook weights (the lids alone do not move them)
+            read = (w_lm[..., -2:] > 0).flatten(1).any(1)
+            weights = torch.where(read[:, None], weights, state.weights)
         m_lm = r.shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
         drop = len(stage.shapes) + (12 if rigid_prior is not None and rigid_prior_weight > 0 else 0)
         kept = torch.cat([r[:, :m_lm - drop], r[:, m_lm:]], 1)  # data + edges + prior + photometric

@@ -46,6 +46,10 @@ class FitModel:
         albedo: (1, V, 3) linear; sh: (1, 9, 3); background: (3,) linear.
         noise: the plate's noise, standard deviation per plate pixel, linear units
             (`nodes.fit.appearance.estimate_noise`): renders get as much (`render_crops`).
+        iris: (2, 3) the iris centres at weight 0 (the eyeballs' front vertices), iris_centres
+            (2, 3) the eyeballs' centres, cm, model frame, and iris_turns (K, 2, 2) each shape's yaw
+            and pitch of each eye per unit weight, radians (`nodes.fit.energy.iris_model_points`);
+            None when the fit does not read the iris.
     """
 
     neutral: Tensor
@@ -58,6 +62,9 @@ class FitModel:
     sh: Tensor
     background: Tensor
     noise: float = 0.0
+    iris: Tensor | None = None
+    iris_centres: Tensor | None = None
+    iris_turns: Tensor | None = None
 
     @classmethod
     def build(cls, neutral: np.ndarray, deltas: np.ndarray, names: list[str], faces: np.ndarray,
@@ -87,6 +94,8 @@ class FitViews:
         image_size: (C, 2) width, height of each camera's plate, pixels.
         plates: (B, C, S, S, 3) the plate's crops at the boxes (`crop_and_resize`, linear), for
             the photometric term (`nodes.fit.photometric`); None without it.
+        iris: (B, C, 2, 2) the plate's iris centres (eye 0 the subject's right), image pixels,
+            NaN where not read; None without them.
     """
 
     target: Tensor
@@ -97,6 +106,7 @@ class FitViews:
     distortion: Tensor | None
     image_size: Tensor
     plates: Tensor | None = None
+    iris: Tensor | None = None
 
     @property
     def scale(self) -> Tensor:
