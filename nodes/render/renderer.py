@@ -32,6 +32,12 @@ pixels exact (no blur of the face that the landmark network reads) and costs O(p
 torch; SoftRas blends every triangle within a few pixels of every pixel (O(pixels x nearby
 triangles) memory in forward and backward), far over a 50 ms budget on two cores.
 
+On the CPU, steps 3-4 and the vertex normals run as numba kernels with hand-written
+backwards (`nodes.render.pixel_kernels`, through `shade_pixels` / `vertex_normals`: one pass
+over the covered pixels each way instead of dozens of torch ops and their autograd nodes);
+elsewhere (CUDA) as torch ops. The two paths agree to rounding
+(`tests/nodes/render/test_pixel_kernels.py`).
+
 Units: positions in cm; colours linear light (albedo in [0, 1]). This module imports torch
 at the top: import it from node `run()` methods only.
 """
@@ -49,10 +55,11 @@ from torch import Tensor
 from ..geometry.camera import project_points_torch
 from ..geometry.image import box_downsample
 from ..geometry.mesh import triangle_adjacency
+from .pixel_kernels import normals_backward, normals_forward, shade_backward, shade_forward
 from .raster import rasterize_triangles, silhouette_pairs
 
 __all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals",
-           "screen_barycentrics", "render_mesh", "SH_BAND_FACTORS"]
+           "screen_barycentrics", "shade_pixels", "render_mesh", "SH_BAND_FACTORS"]
 
 SH_BAND_FACTORS = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0)
 """Clamped-cosine convolution factors A_l of SH bands 0, 1, 2 (Ramamoorthi and Hanrahan 2001)."""
@@ -209,22 +216,57 @@ class _NormalSums(torch.autograd.Function):
         return gx.reshape(nv, bsz, 3).permute(1, 0, 2), None
 
 
-def vertex_normals(vertices: Tensor, faces: Tensor, eps: float = 1e-12) -> Tensor:
+class _CompiledNormals(torch.autograd.Function):
+    """Unit vertex normals on the CPU by the numba kernels of `pixel_kernels` (forward and
+    backward), the same math as `_NormalSums` + normalization in torch."""
+
+    @staticmethod
+    def forward(ctx, vertices: Tensor, faces: np.ndarray, eps: float) -> Tensor:  # type: ignore[override]
+        v = vertices.detach().contiguous().numpy()
+        normals, sums = normals_forward(v, faces, eps)
+        ctx.arrays = (v, faces, sums, normals)
+        ctx.eps, ctx.dtype = eps, vertices.dtype
+        return torch.from_numpy(normals)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        v, faces, sums, normals = ctx.arrays
+        g = grad.detach().to(ctx.dtype).contiguous().numpy()
+        return torch.from_numpy(normals_backward(v, faces, sums, normals, g, ctx.eps)), None, None
+
+
+def _compiled(device: torch.device, dtype: torch.dtype, compiled: bool | None) -> bool:
+    """Whether to use the numba kernels: by default on the CPU in float32 / float64."""
+    if compiled is None:
+        return device.type == "cpu" and dtype in (torch.float32, torch.float64)
+    if compiled and device.type != "cpu":
+        raise ValueError(f"compiled: the numba kernels run on the CPU only, found tensors on {device}")
+    return compiled
+
+
+def vertex_normals(vertices: Tensor, faces: Tensor, eps: float = 1e-12, *,
+                   compiled: bool | None = None) -> Tensor:
     """Area-weighted vertex normals (sum of adjacent face cross products, normalized).
 
-    Computed with sparse incidence matrices (cached per triangle list) and a hand-written
-    backward; `tests/nodes/render/test_renderer.py` checks values and gradients against a
-    plain gather / index_add autograd reference.
+    On the CPU by default by numba kernels (`pixel_kernels.normals_forward` / `_backward`);
+    elsewhere (CUDA) with sparse incidence matrices (cached per triangle list) and a
+    hand-written backward. `tests/nodes/render/test_renderer.py` checks values and gradients
+    against a plain gather / index_add autograd reference, `test_pixel_kernels.py` the two
+    paths against each other.
 
     Args:
         vertices: (B, V, 3) positions, cm.
         faces: (T, 3) int64 vertex indices; the normal points to the side from which the
             corners run counter-clockwise (right-hand rule).
         eps: vertices with no area around them get a zero normal (norm clamped to eps).
+        compiled: True = the numba kernels (CPU tensors only), False = torch ops, None = the
+            kernels on the CPU in float32 / float64, torch ops otherwise.
     Returns:
         (B, V, 3) unit normals, same dtype and device.
     """
     faces = torch.as_tensor(faces, device=vertices.device).long()
+    if _compiled(vertices.device, vertices.dtype, compiled):
+        return _CompiledNormals.apply(vertices, np.ascontiguousarray(faces.numpy()), float(eps))
     normals = _NormalSums.apply(vertices, _incidence(faces, vertices.shape[1], vertices.dtype))
     return normals / normals.norm(dim=-1, keepdim=True).clamp_min(eps)
 
@@ -296,8 +338,87 @@ def _antialias(colour: Tensor, tri: Tensor, zbuf: Tensor, pix: Tensor, faces: Te
     spill = alpha >= 0.5
     weight = torch.where(spill, alpha - 0.5, 0.5 - alpha)[:, None]
     delta = weight * torch.where(spill[:, None], c_occ - c_far, c_far - c_occ)
-    added = torch.zeros_like(flat).index_add(0, torch.where(spill, far, occ), delta)
-    return (flat + added).reshape(colour.shape)
+    return flat.index_add(0, torch.where(spill, far, occ), delta).reshape(colour.shape)
+
+
+class _CompiledShade(torch.autograd.Function):
+    """`shade_pixels` on the CPU by the numba kernels of `pixel_kernels` (forward and
+    backward; the backward touches only the covered pixels and their corners)."""
+
+    @staticmethod
+    def forward(ctx, pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor,  # type: ignore[override]
+                pixels: np.ndarray, corners: np.ndarray, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
+        arrays = tuple(t.detach().contiguous().numpy() for t in (pix, depth, normals, albedo, sh))
+        colour, mu, dep = shade_forward(*arrays, pixels, corners, height, width)
+        ctx.arrays, ctx.dtype = arrays + (pixels, corners, height, width), pix.dtype
+        return torch.from_numpy(colour), torch.from_numpy(mu), torch.from_numpy(dep)
+
+    @staticmethod
+    def backward(ctx, g_colour: Tensor, g_mu: Tensor, g_depth: Tensor):  # type: ignore[override]
+        arrays = ctx.arrays
+        dt, n = arrays[0].dtype, len(arrays[5])
+
+        def grad(g: Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
+            return np.zeros(shape, dt) if g is None else g.detach().to(ctx.dtype).contiguous().numpy()
+
+        grads = shade_backward(*arrays, grad(g_colour, (n, 3)), grad(g_mu, (n, 3)), grad(g_depth, (n,)))
+        return tuple(torch.from_numpy(g) for g in grads) + (None, None, None, None)
+
+
+def _shade_torch(pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor, pixels: Tensor,
+                 corners: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
+    """`shade_pixels` in torch ops (any device; autograd)."""
+    bsz, nv = depth.shape
+    dt = pix.dtype
+    batch = pixels // (height * width)
+    rem = pixels % (height * width)
+    centres = torch.stack([rem % width, rem // width], -1).to(dt)
+    flat_corner = (batch[:, None] * nv + corners).reshape(-1)  # rows of (B * V, ...) tensors
+    tri_pix = pix.reshape(-1, 2).index_select(0, flat_corner).reshape(-1, 3, 2)
+    lam = screen_barycentrics(tri_pix, centres)
+    mu = lam / depth.reshape(-1).index_select(0, flat_corner).reshape(-1, 3)
+    inv_z = mu.sum(-1)
+    mu = mu / inv_z[:, None]
+    attrs = torch.cat([albedo.expand(bsz, nv, 3), normals], -1).reshape(bsz * nv, 6)
+    values = (mu[:, :, None] * attrs.index_select(0, flat_corner).reshape(-1, 3, 6)).sum(1)  # (N, 6)
+    n = values[:, 3:6]
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    basis = sh_basis(n)  # (N, 9)
+    if sh.shape[0] == 1:
+        irradiance = basis @ sh[0]
+    else:
+        irradiance = torch.bmm(basis[:, None, :], sh.index_select(0, batch))[:, 0]
+    return values[:, :3] * irradiance, mu, 1.0 / inv_z
+
+
+def shade_pixels(pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor, pixels: Tensor,
+                 corners: Tensor, height: int, width: int, *, compiled: bool | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """Shade the covered pixels of B images (steps 3 and 4 of the module docstring).
+
+    For pixel p of triangle (i0, i1, i2): the screen barycentrics `l` of its centre, made
+    perspective-correct (`mu_k = (l_k / z_k) / S`, `S = sum_j l_j / z_j`), the interpolated
+    albedo and normal (normalized) and `colour = albedo * sum_k sh[k] Y_k(n)`.
+
+    Args:
+        pix: (B, V, 2) projected vertices, pixels.
+        depth: (B, V) their camera-frame z, cm.
+        normals: (B, V, 3) unit vertex normals, world frame.
+        albedo: (B or 1, V, 3) linear; sh: (B or 1, 9, 3) (`sh_basis` order).
+        pixels: (N,) int64 flat indices into (B, H, W) of the covered pixels.
+        corners: (N, 3) int64 vertex indices of the triangle covering each.
+        height, width: image size, pixels.
+        compiled: True = numba kernels (CPU only), False = torch ops, None = the kernels on
+            the CPU in float32 / float64 (the two agree to rounding; differentiable either way).
+    Returns:
+        colour (N, 3), mu (N, 3) perspective-correct barycentrics (corner order of `corners`),
+        depth (N,) camera z of the visible point, cm.
+    """
+    if _compiled(pix.device, pix.dtype, compiled):
+        return _CompiledShade.apply(pix, depth, normals, albedo, sh,
+                                    np.ascontiguousarray(pixels.numpy(), np.int64),
+                                    np.ascontiguousarray(corners.numpy(), np.int64), height, width)
+    return _shade_torch(pix, depth, normals, albedo, sh, pixels, corners, height, width)
 
 
 def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: Tensor,
@@ -373,38 +494,20 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     if s > 1:  # pixel centre convention: x_s = s (x + 1/2) - 1/2
         intrinsics = torch.cat([intrinsics[:, :2] * s, (intrinsics[:, 2:] + 0.5) * s - 0.5], -1)
 
-    rot, trans = world_to_camera[:, :3, :3], world_to_camera[:, :3, 3]
-    depth_v = (vertices @ rot.transpose(1, 2) + trans[:, None])[..., 2]  # (B, V)
+    # camera z of the vertices (B, V): the third row of T_camera_world
+    depth_v = (vertices @ world_to_camera[:, 2:3, :3].transpose(1, 2))[..., 0] + world_to_camera[:, 2:3, 3]
     pix = project_points_torch(vertices, world_to_camera, intrinsics, distortion)  # (B, V, 2)
+    faces_np = faces_t.cpu().numpy()
     tri_np, z_np = rasterize_triangles(pix.detach().cpu().numpy(), depth_v.detach().cpu().numpy(),
-                                       faces_t.cpu().numpy(), hs, ws, near)
+                                       faces_np, hs, ws, near)
     tri = torch.from_numpy(tri_np).to(dev).long()
     zbuf = torch.from_numpy(z_np).to(dev)
 
-    flat_tri = tri.reshape(-1)
-    idx = torch.nonzero(flat_tri >= 0).squeeze(1)
-    batch = idx // (hs * ws)
-    rem = idx % (hs * ws)
-    centres = torch.stack([rem % ws, rem // ws], -1).to(dt)
-    corner_ids = faces_t[flat_tri[idx]]  # (N, 3)
-    flat_corner = (batch[:, None] * nv + corner_ids).reshape(-1)  # rows of (B * V, ...) tensors
-    corners = pix.reshape(-1, 2).index_select(0, flat_corner).reshape(-1, 3, 2)
-    lam = screen_barycentrics(corners, centres)
-    mu = lam / depth_v.reshape(-1).index_select(0, flat_corner).reshape(-1, 3)
-    inv_z = mu.sum(-1)
-    mu = mu / inv_z[:, None]
-
+    idx_np = np.flatnonzero(tri_np.reshape(-1) >= 0)  # the covered pixels, ascending
+    idx = torch.from_numpy(idx_np).to(dev)
+    corners = torch.from_numpy(np.ascontiguousarray(faces_np, np.int64)[tri_np.reshape(-1)[idx_np]]).to(dev)
     normals = vertex_normals(vertices, faces_t)
-    attrs = torch.cat([albedo.expand(bsz, nv, 3), normals], -1).reshape(bsz * nv, 6)
-    values = (mu[:, :, None] * attrs.index_select(0, flat_corner).reshape(-1, 3, 6)).sum(1)  # (N, 6)
-    n = values[:, 3:6]
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    basis = sh_basis(n)  # (N, 9)
-    if sh.shape[0] == 1:
-        irradiance = basis @ sh[0]
-    else:
-        irradiance = torch.bmm(basis[:, None, :], sh.index_select(0, batch))[:, 0]
-    shaded = values[:, :3] * irradiance
+    shaded, mu, depth_p = shade_pixels(pix, depth_v, normals, albedo, sh, idx, corners, hs, ws)
 
     npix = bsz * hs * ws
     # separate buffers: a loss on the image alone then never back-propagates through depth
@@ -413,7 +516,7 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     canvas = torch.cat([background.reshape(npix, 3), torch.zeros(npix, 1, device=dev, dtype=dt)], -1)
     image = canvas.index_put((idx,), torch.cat([shaded, ones], -1)).reshape(bsz, hs, ws, 4)
     geometry = torch.zeros(npix, 4, device=dev, dtype=dt).index_put(
-        (idx,), torch.cat([(1.0 / inv_z)[:, None], mu], -1))
+        (idx,), torch.cat([depth_p[:, None], mu], -1))
     if antialias:
         adj = triangle_adjacency(faces_t.cpu().numpy()) if adjacency is None else \
             np.asarray(adjacency.cpu() if isinstance(adjacency, Tensor) else adjacency, np.int64)

@@ -1,0 +1,379 @@
+"""Compiled (numba) forward and backward of the renderer's differentiable parts on the CPU.
+
+Two computations of `nodes.render.renderer` cost most of a CPU render when written as torch
+ops (dozens of small element-wise ops and their autograd nodes, each over every covered
+pixel or every triangle):
+
+- `normals_forward` / `normals_backward`: area-weighted unit vertex normals (the sum of the
+  adjacent faces' cross products, normalized with the norm clamped to `eps`) and the
+  gradient of a loss with respect to the vertices given its gradient w.r.t. the normals.
+- `shade_forward` / `shade_backward`: for each covered pixel, the screen barycentrics of
+  its centre in its triangle, made perspective-correct (`mu_k = (l_k / z_k) / S`,
+  `S = sum_j l_j / z_j`, depth `1 / S`), the interpolated albedo and normal, the normal
+  normalized (norm clamped to 1e-12), the 9 SH basis values and `colour = albedo * E(n)`;
+  backward: the gradients w.r.t. the projected vertices, their camera depths, the vertex
+  normals, the albedo and the SH coefficients, scattered over the pixels' corners.
+
+Each backward recomputes its forward's intermediates from the inputs (a few multiplies per
+pixel) rather than storing them. The math is the torch path's, term by term (the torch path
+stays for CUDA and is the reference in `tests/nodes/render/test_pixel_kernels.py`); the
+kernels run serially over pixels or triangles (their outputs are scatter-adds), in the
+inputs' float type for arrays and float64 for scalar temporaries.
+
+Conventions as `renderer`: pixel centres at integers, pixel `p` of a (B, H, W) image is
+flat index `(b * H + y) * W + x`; SH order of `renderer.sh_basis`.
+
+This module imports numba at the top (kernels cached on disk, `cache=True`): import it from
+torch modules only, never from a package `__init__`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward"]
+
+_Y0, _Y1, _Y2A, _Y2B, _Y2C = 0.282094791773878, 0.488602511902920, 1.092548430592079, \
+    0.315391565252520, 0.546274215296040
+_NORMAL_EPS = 1e-12  # the shading normal's norm clamp (as the torch path)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _normal_sums_kernel(vertices, faces, sums):  # pragma: no cover - compiled
+    for b in range(vertices.shape[0]):
+        for t in range(faces.shape[0]):
+            i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+            ax = vertices[b, i1, 0] - vertices[b, i0, 0]
+            ay = vertices[b, i1, 1] - vertices[b, i0, 1]
+            az = vertices[b, i1, 2] - vertices[b, i0, 2]
+            bx = vertices[b, i2, 0] - vertices[b, i0, 0]
+            by = vertices[b, i2, 1] - vertices[b, i0, 1]
+            bz = vertices[b, i2, 2] - vertices[b, i0, 2]
+            nx = ay * bz - az * by
+            ny = az * bx - ax * bz
+            nz = ax * by - ay * bx
+            for i in (i0, i1, i2):
+                sums[b, i, 0] += nx
+                sums[b, i, 1] += ny
+                sums[b, i, 2] += nz
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _normalize_kernel(sums, eps, out):  # pragma: no cover - compiled
+    for b in range(sums.shape[0]):
+        for v in range(sums.shape[1]):
+            x, y, z = sums[b, v, 0], sums[b, v, 1], sums[b, v, 2]
+            r = max(math.sqrt(x * x + y * y + z * z), eps)
+            out[b, v, 0] = x / r
+            out[b, v, 1] = y / r
+            out[b, v, 2] = z / r
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _normals_backward_kernel(vertices, faces, sums, normals, grad, eps, grad_v):  # pragma: no cover
+    nb, nv = sums.shape[0], sums.shape[1]
+    g_sum = np.empty((nv, 3), sums.dtype)
+    for b in range(nb):
+        for v in range(nv):  # through n = s / max(|s|, eps)
+            x, y, z = sums[b, v, 0], sums[b, v, 1], sums[b, v, 2]
+            r = math.sqrt(x * x + y * y + z * z)
+            gx, gy, gz = grad[b, v, 0], grad[b, v, 1], grad[b, v, 2]
+            if r > eps:
+                nx, ny, nz = normals[b, v, 0], normals[b, v, 1], normals[b, v, 2]
+                d = nx * gx + ny * gy + nz * gz
+                g_sum[v, 0] = (gx - nx * d) / r
+                g_sum[v, 1] = (gy - ny * d) / r
+                g_sum[v, 2] = (gz - nz * d) / r
+            else:
+                g_sum[v, 0] = gx / eps
+                g_sum[v, 1] = gy / eps
+                g_sum[v, 2] = gz / eps
+        for t in range(faces.shape[0]):  # through the face normal e1 x e2 (e1 = p1 - p0, e2 = p2 - p0)
+            i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+            fx = g_sum[i0, 0] + g_sum[i1, 0] + g_sum[i2, 0]
+            fy = g_sum[i0, 1] + g_sum[i1, 1] + g_sum[i2, 1]
+            fz = g_sum[i0, 2] + g_sum[i1, 2] + g_sum[i2, 2]
+            ax = vertices[b, i1, 0] - vertices[b, i0, 0]
+            ay = vertices[b, i1, 1] - vertices[b, i0, 1]
+            az = vertices[b, i1, 2] - vertices[b, i0, 2]
+            bx = vertices[b, i2, 0] - vertices[b, i0, 0]
+            by = vertices[b, i2, 1] - vertices[b, i0, 1]
+            bz = vertices[b, i2, 2] - vertices[b, i0, 2]
+            g1x = by * fz - bz * fy  # e2 x g
+            g1y = bz * fx - bx * fz
+            g1z = bx * fy - by * fx
+            g2x = fy * az - fz * ay  # g x e1
+            g2y = fz * ax - fx * az
+            g2z = fx * ay - fy * ax
+            grad_v[b, i1, 0] += g1x
+            grad_v[b, i1, 1] += g1y
+            grad_v[b, i1, 2] += g1z
+            grad_v[b, i2, 0] += g2x
+            grad_v[b, i2, 1] += g2y
+            grad_v[b, i2, 2] += g2z
+            grad_v[b, i0, 0] -= g1x + g2x
+            grad_v[b, i0, 1] -= g1y + g2y
+            grad_v[b, i0, 2] -= g1z + g2z
+
+
+def normals_forward(vertices: np.ndarray, faces: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit area-weighted vertex normals.
+
+    Args:
+        vertices: (B, V, 3) float32 or float64, cm (C-contiguous).
+        faces: (T, 3) int64.
+        eps: the norm clamp (a vertex with no area around it gets a zero normal).
+    Returns:
+        normals (B, V, 3) unit (or zero), and the unnormalized sums (B, V, 3) cm^2 that
+        `normals_backward` takes.
+    """
+    sums = np.zeros(vertices.shape, vertices.dtype)
+    _normal_sums_kernel(vertices, faces, sums)
+    normals = np.empty_like(sums)
+    _normalize_kernel(sums, eps, normals)
+    return normals, sums
+
+
+def normals_backward(vertices: np.ndarray, faces: np.ndarray, sums: np.ndarray, normals: np.ndarray,
+                     grad: np.ndarray, eps: float) -> np.ndarray:
+    """Gradient w.r.t. the vertices (B, V, 3) given `grad`, that w.r.t. the normals (B, V, 3)."""
+    grad_v = np.zeros(vertices.shape, vertices.dtype)
+    _normals_backward_kernel(vertices, faces, sums, normals, grad, eps, grad_v)
+    return grad_v
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _corner_rows(pixel, corners, n, nv, height, width):  # pragma: no cover - compiled
+    b = pixel // (height * width)
+    rem = pixel - b * height * width
+    py = rem // width
+    px = rem - py * width
+    return b, b * nv + corners[n, 0], b * nv + corners[n, 1], b * nv + corners[n, 2], float(px), float(py)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _irradiance(sh, bs, ch, y1, y2, y3, y4, y5, y6, y7, y8):  # pragma: no cover - compiled
+    return (_Y0 * sh[bs, 0, ch] + y1 * sh[bs, 1, ch] + y2 * sh[bs, 2, ch] + y3 * sh[bs, 3, ch]
+            + y4 * sh[bs, 4, ch] + y5 * sh[bs, 5, ch] + y6 * sh[bs, 6, ch] + y7 * sh[bs, 7, ch]
+            + y8 * sh[bs, 8, ch])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _basis(x, y, z):  # pragma: no cover - compiled
+    """SH basis values 1..8 of a unit normal (value 0 is the constant _Y0)."""
+    return (_Y1 * y, _Y1 * z, _Y1 * x, _Y2A * x * y, _Y2A * y * z, _Y2B * (3.0 * z * z - 1.0), _Y2A * x * z,
+            _Y2C * (x * x - y * y))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _shade_forward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+                          colour, mu_out, depth_out):  # pragma: no cover - compiled
+    nv = depth.shape[1]
+    pix2 = pix.reshape(-1, 2)
+    dep = depth.reshape(-1)
+    nrm = normals.reshape(-1, 3)
+    one_albedo = albedo.shape[0] == 1
+    one_sh = sh.shape[0] == 1
+    for n in range(pixels.shape[0]):
+        b, r0, r1, r2, px, py = _corner_rows(pixels[n], corners, n, nv, height, width)
+        x0, y0 = pix2[r0, 0], pix2[r0, 1]
+        x1, y1 = pix2[r1, 0], pix2[r1, 1]
+        x2, y2 = pix2[r2, 0], pix2[r2, 1]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
+        l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+        l2 = 1.0 - l0 - l1
+        m0, m1, m2 = l0 / dep[r0], l1 / dep[r1], l2 / dep[r2]
+        s = m0 + m1 + m2
+        mu0, mu1, mu2 = m0 / s, m1 / s, m2 / s
+        depth_out[n] = 1.0 / s
+        mu_out[n, 0], mu_out[n, 1], mu_out[n, 2] = mu0, mu1, mu2
+        ba = 0 if one_albedo else b
+        bs = 0 if one_sh else b
+        vx = mu0 * nrm[r0, 0] + mu1 * nrm[r1, 0] + mu2 * nrm[r2, 0]
+        vy = mu0 * nrm[r0, 1] + mu1 * nrm[r1, 1] + mu2 * nrm[r2, 1]
+        vz = mu0 * nrm[r0, 2] + mu1 * nrm[r1, 2] + mu2 * nrm[r2, 2]
+        r = max(math.sqrt(vx * vx + vy * vy + vz * vz), _NORMAL_EPS)
+        q1, q2, q3, q4, q5, q6, q7, q8 = _basis(vx / r, vy / r, vz / r)
+        c0, c1, c2 = r0 - b * nv, r1 - b * nv, r2 - b * nv
+        for ch in range(3):
+            a = mu0 * albedo[ba, c0, ch] + mu1 * albedo[ba, c1, ch] + mu2 * albedo[ba, c2, ch]
+            colour[n, ch] = a * _irradiance(sh, bs, ch, q1, q2, q3, q4, q5, q6, q7, q8)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+                           g_colour, g_mu, g_depth, grad_pix, grad_depth, grad_normals, grad_albedo,
+                           basis_out, g_irr_out):  # pragma: no cover - compiled
+    nv = depth.shape[1]
+    pix2 = pix.reshape(-1, 2)
+    dep = depth.reshape(-1)
+    nrm = normals.reshape(-1, 3)
+    gp2 = grad_pix.reshape(-1, 2)
+    gd1 = grad_depth.reshape(-1)
+    gn2 = grad_normals.reshape(-1, 3)
+    one_albedo = albedo.shape[0] == 1
+    one_sh = sh.shape[0] == 1
+    for n in range(pixels.shape[0]):
+        b, r0, r1, r2, px, py = _corner_rows(pixels[n], corners, n, nv, height, width)
+        x0, y0 = pix2[r0, 0], pix2[r0, 1]
+        x1, y1 = pix2[r1, 0], pix2[r1, 1]
+        x2, y2 = pix2[r2, 0], pix2[r2, 1]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        cr0 = (x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)
+        cr1 = (x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)
+        inv_area = 1.0 / area
+        l0 = cr0 * inv_area
+        l1 = cr1 * inv_area
+        l2 = 1.0 - l0 - l1
+        iz0, iz1, iz2 = 1.0 / dep[r0], 1.0 / dep[r1], 1.0 / dep[r2]
+        m0, m1, m2 = l0 * iz0, l1 * iz1, l2 * iz2
+        s = m0 + m1 + m2
+        inv_s = 1.0 / s
+        mu0, mu1, mu2 = m0 * inv_s, m1 * inv_s, m2 * inv_s
+        ba = 0 if one_albedo else b
+        bs = 0 if one_sh else b
+        c0, c1, c2 = r0 - b * nv, r1 - b * nv, r2 - b * nv
+        n0x, n0y, n0z = nrm[r0, 0], nrm[r0, 1], nrm[r0, 2]
+        n1x, n1y, n1z = nrm[r1, 0], nrm[r1, 1], nrm[r1, 2]
+        n2x, n2y, n2z = nrm[r2, 0], nrm[r2, 1], nrm[r2, 2]
+        vx = mu0 * n0x + mu1 * n1x + mu2 * n2x
+        vy = mu0 * n0y + mu1 * n1y + mu2 * n2y
+        vz = mu0 * n0z + mu1 * n1z + mu2 * n2z
+        norm = math.sqrt(vx * vx + vy * vy + vz * vz)
+        inv_r = 1.0 / max(norm, _NORMAL_EPS)
+        x, yy, z = vx * inv_r, vy * inv_r, vz * inv_r
+        q1, q2, q3, q4, q5, q6, q7, q8 = _basis(x, yy, z)
+        a00, a01, a02 = albedo[ba, c0, 0], albedo[ba, c0, 1], albedo[ba, c0, 2]
+        a10, a11, a12 = albedo[ba, c1, 0], albedo[ba, c1, 1], albedo[ba, c1, 2]
+        a20, a21, a22 = albedo[ba, c2, 0], albedo[ba, c2, 1], albedo[ba, c2, 2]
+        # colour_c = a_c E_c, a_c = sum_k mu_k albedo_kc, E_c = sum_j Y_j sh[j, c]
+        gc0, gc1, gc2 = g_colour[n, 0], g_colour[n, 1], g_colour[n, 2]
+        ge0 = gc0 * (mu0 * a00 + mu1 * a10 + mu2 * a20)
+        ge1 = gc1 * (mu0 * a01 + mu1 * a11 + mu2 * a21)
+        ge2 = gc2 * (mu0 * a02 + mu1 * a12 + mu2 * a22)
+        ga0 = gc0 * _irradiance(sh, bs, 0, q1, q2, q3, q4, q5, q6, q7, q8)
+        ga1 = gc1 * _irradiance(sh, bs, 1, q1, q2, q3, q4, q5, q6, q7, q8)
+        ga2 = gc2 * _irradiance(sh, bs, 2, q1, q2, q3, q4, q5, q6, q7, q8)
+        basis_out[n, 0] = _Y0
+        basis_out[n, 1], basis_out[n, 2], basis_out[n, 3], basis_out[n, 4] = q1, q2, q3, q4
+        basis_out[n, 5], basis_out[n, 6], basis_out[n, 7], basis_out[n, 8] = q5, q6, q7, q8
+        g_irr_out[n, 0], g_irr_out[n, 1], g_irr_out[n, 2] = ge0, ge1, ge2
+        gq1 = sh[bs, 1, 0] * ge0 + sh[bs, 1, 1] * ge1 + sh[bs, 1, 2] * ge2
+        gq2 = sh[bs, 2, 0] * ge0 + sh[bs, 2, 1] * ge1 + sh[bs, 2, 2] * ge2
+        gq3 = sh[bs, 3, 0] * ge0 + sh[bs, 3, 1] * ge1 + sh[bs, 3, 2] * ge2
+        gq4 = sh[bs, 4, 0] * ge0 + sh[bs, 4, 1] * ge1 + sh[bs, 4, 2] * ge2
+        gq5 = sh[bs, 5, 0] * ge0 + sh[bs, 5, 1] * ge1 + sh[bs, 5, 2] * ge2
+        gq6 = sh[bs, 6, 0] * ge0 + sh[bs, 6, 1] * ge1 + sh[bs, 6, 2] * ge2
+        gq7 = sh[bs, 7, 0] * ge0 + sh[bs, 7, 1] * ge1 + sh[bs, 7, 2] * ge2
+        gq8 = sh[bs, 8, 0] * ge0 + sh[bs, 8, 1] * ge1 + sh[bs, 8, 2] * ge2
+        # the SH basis of the unit normal (x, yy, z)
+        gnx = _Y1 * gq3 + _Y2A * yy * gq4 + _Y2A * z * gq7 + 2.0 * _Y2C * x * gq8
+        gny = _Y1 * gq1 + _Y2A * x * gq4 + _Y2A * z * gq5 - 2.0 * _Y2C * yy * gq8
+        gnz = _Y1 * gq2 + _Y2A * yy * gq5 + 6.0 * _Y2B * z * gq6 + _Y2A * x * gq7
+        if norm > _NORMAL_EPS:  # n = v / max(|v|, eps)
+            d = x * gnx + yy * gny + z * gnz
+            gvx, gvy, gvz = (gnx - x * d) * inv_r, (gny - yy * d) * inv_r, (gnz - z * d) * inv_r
+        else:
+            gvx, gvy, gvz = gnx * inv_r, gny * inv_r, gnz * inv_r
+        # the interpolation value = sum_k mu_k attr_k, to the albedo and normals of the corners
+        grad_albedo[ba, c0, 0] += mu0 * ga0
+        grad_albedo[ba, c0, 1] += mu0 * ga1
+        grad_albedo[ba, c0, 2] += mu0 * ga2
+        grad_albedo[ba, c1, 0] += mu1 * ga0
+        grad_albedo[ba, c1, 1] += mu1 * ga1
+        grad_albedo[ba, c1, 2] += mu1 * ga2
+        grad_albedo[ba, c2, 0] += mu2 * ga0
+        grad_albedo[ba, c2, 1] += mu2 * ga1
+        grad_albedo[ba, c2, 2] += mu2 * ga2
+        gn2[r0, 0] += mu0 * gvx
+        gn2[r0, 1] += mu0 * gvy
+        gn2[r0, 2] += mu0 * gvz
+        gn2[r1, 0] += mu1 * gvx
+        gn2[r1, 1] += mu1 * gvy
+        gn2[r1, 2] += mu1 * gvz
+        gn2[r2, 0] += mu2 * gvx
+        gn2[r2, 1] += mu2 * gvy
+        gn2[r2, 2] += mu2 * gvz
+        gmu0 = g_mu[n, 0] + a00 * ga0 + a01 * ga1 + a02 * ga2 + n0x * gvx + n0y * gvy + n0z * gvz
+        gmu1 = g_mu[n, 1] + a10 * ga0 + a11 * ga1 + a12 * ga2 + n1x * gvx + n1y * gvy + n1z * gvz
+        gmu2 = g_mu[n, 2] + a20 * ga0 + a21 * ga1 + a22 * ga2 + n2x * gvx + n2y * gvy + n2z * gvz
+        # mu_k = m_k / S, depth = 1 / S, m_k = l_k / z_k
+        g_s = -g_depth[n] * inv_s * inv_s
+        dot = gmu0 * mu0 + gmu1 * mu1 + gmu2 * mu2
+        gm0 = (gmu0 - dot) * inv_s + g_s
+        gm1 = (gmu1 - dot) * inv_s + g_s
+        gm2 = (gmu2 - dot) * inv_s + g_s
+        gd1[r0] -= gm0 * l0 * iz0 * iz0
+        gd1[r1] -= gm1 * l1 * iz1 * iz1
+        gd1[r2] -= gm2 * l2 * iz2 * iz2
+        gl0 = gm0 * iz0 - gm2 * iz2  # l2 = 1 - l0 - l1
+        gl1 = gm1 * iz1 - gm2 * iz2
+        # l0 = cr0 / area, l1 = cr1 / area
+        g_c0, g_c1 = gl0 * inv_area, gl1 * inv_area
+        g_area = -(gl0 * l0 + gl1 * l1) * inv_area
+        # cr0 = (x1 - px)(y2 - py) - (x2 - px)(y1 - py); cr1 = (x2 - px)(y0 - py) - (x0 - px)(y2 - py);
+        # area = (x1 - x0)(y2 - y0) - (x2 - x0)(y1 - y0)
+        gp2[r0, 0] += -g_c1 * (y2 - py) + g_area * (y1 - y2)
+        gp2[r0, 1] += g_c1 * (x2 - px) + g_area * (x2 - x1)
+        gp2[r1, 0] += g_c0 * (y2 - py) + g_area * (y2 - y0)
+        gp2[r1, 1] += -g_c0 * (x2 - px) - g_area * (x2 - x0)
+        gp2[r2, 0] += -g_c0 * (y1 - py) + g_c1 * (y0 - py) - g_area * (y1 - y0)
+        gp2[r2, 1] += g_c0 * (x1 - px) - g_c1 * (x0 - px) + g_area * (x1 - x0)
+
+
+def shade_forward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo: np.ndarray, sh: np.ndarray,
+                  pixels: np.ndarray, corners: np.ndarray, height: int, width: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shade the covered pixels (module docstring).
+
+    Args:
+        pix: (B, V, 2) projected vertices, pixels; depth: (B, V) their camera z, cm;
+        normals: (B, V, 3) unit vertex normals, world frame; albedo: (B or 1, V, 3);
+        sh: (B or 1, 9, 3) SH irradiance coefficients. One float dtype, C-contiguous.
+        pixels: (N,) int64 flat indices into (B, H, W) of the covered pixels, ascending.
+        corners: (N, 3) int64 vertex indices of each pixel's triangle.
+        height, width: the image size, pixels.
+    Returns:
+        colour (N, 3) linear, mu (N, 3) perspective-correct barycentrics, depth (N,) cm.
+    """
+    dt = pix.dtype
+    colour = np.empty((len(pixels), 3), dt)
+    mu = np.empty((len(pixels), 3), dt)
+    dep = np.empty(len(pixels), dt)
+    _shade_forward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, colour, mu, dep)
+    return colour, mu, dep
+
+
+def shade_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo: np.ndarray, sh: np.ndarray,
+                   pixels: np.ndarray, corners: np.ndarray, height: int, width: int, g_colour: np.ndarray,
+                   g_mu: np.ndarray, g_depth: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Gradients of `shade_forward` (same inputs, and the gradients w.r.t. its three outputs).
+
+    Returns:
+        gradients w.r.t. pix (B, V, 2), depth (B, V), normals (B, V, 3), albedo (B or 1, V, 3)
+        and sh (B or 1, 9, 3).
+    """
+    dt = pix.dtype
+    n = len(pixels)
+    grads = (np.zeros(pix.shape, dt), np.zeros(depth.shape, dt), np.zeros(normals.shape, dt),
+             np.zeros(albedo.shape, dt))
+    basis, g_irradiance = np.empty((n, 9), dt), np.empty((n, 3), dt)
+    _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+                           g_colour, g_mu, g_depth, *grads, basis, g_irradiance)
+    grad_sh = np.zeros(sh.shape, np.float64)  # d colour_c / d sh[j, c] = Y_j a_c, summed per image
+    _sum_products(basis, g_irradiance, pixels, height * width, sh.shape[0] == 1, grad_sh)
+    return grads + (grad_sh.astype(dt),)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _sum_products(basis, g, pixels, image_size, one, out):  # pragma: no cover - compiled
+    """out[b, j, c] += basis[n, j] g[n, c] over the pixels n of image b (all into out[0] when one)."""
+    for n in range(basis.shape[0]):
+        b = 0 if one else pixels[n] // image_size
+        for j in range(9):
+            for c in range(3):
+                out[b, j, c] += basis[n, j] * g[n, c]

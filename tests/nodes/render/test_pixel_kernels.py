@@ -1,0 +1,158 @@
+"""The renderer's compiled CPU path (numba forward and hand-written backward,
+`nodes.render.pixel_kernels`) against its torch-ops path (autograd), float64 gradcheck, and the
+pruned silhouette walk against the unpruned one."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("numba")
+
+from nodes.geometry.mesh import triangle_adjacency  # noqa: E402
+from nodes.render import raster, renderer  # noqa: E402
+from nodes.render.renderer import render_mesh, shade_pixels, sh_from_lights, vertex_normals  # noqa: E402
+
+
+def _bumpy_sphere(rng: np.random.Generator, batch: int = 1, dtype=torch.float64):
+    """A bumpy icosphere (642 vertices, radius ~5 cm) 40 cm in front of a 48^2 pinhole camera."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(3, radius=5.0)
+    verts = np.asarray(sphere.vertices) * (1 + 0.05 * rng.standard_normal((batch, len(sphere.vertices), 1)))
+    verts = verts + np.array([0.7, -0.4, 40.0]) + rng.normal(0, 0.5, (batch, 1, 3))
+    faces = np.asarray(sphere.faces, np.int64)
+    e = torch.eye(4, dtype=dtype)[None].expand(batch, 4, 4)
+    k = torch.tensor([[150.0, 150.0, 23.5, 23.5]], dtype=dtype).expand(batch, 4)
+    return torch.as_tensor(verts, dtype=dtype), faces, e, k
+
+
+def _render_both(verts, faces, e, k, albedo, sh, **kwargs):
+    """render_mesh with the compiled kernels and with torch ops: outputs and gradients of a
+    loss on the image, depth and barycentrics w.r.t. vertices, albedo and sh."""
+    results = []
+    for compiled in (True, False):
+        leaves = [t.clone().requires_grad_() for t in (verts, albedo, sh)]
+        shade, normals = renderer.shade_pixels, renderer.vertex_normals
+        renderer.shade_pixels = functools.partial(shade, compiled=compiled)
+        renderer.vertex_normals = functools.partial(normals, compiled=compiled)
+        try:
+            out = render_mesh(leaves[0], faces, e, k, 48, 48, albedo=leaves[1], sh=leaves[2], **kwargs)
+        finally:
+            renderer.shade_pixels, renderer.vertex_normals = shade, normals
+        g = torch.Generator().manual_seed(3)
+        w = torch.randn(out.image.shape, generator=g, dtype=verts.dtype)
+        loss = (out.image * w).sum() + 0.1 * out.depth.sum() + (out.barycentrics * w).sum() + out.alpha.sum()
+        loss.backward()
+        results.append((out.image.detach(), out.alpha.detach(), out.depth.detach(), out.barycentrics.detach(),
+                        out.triangle) + tuple(t.grad for t in leaves))
+    return results
+
+
+@pytest.mark.parametrize("dtype, rtol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_compiled_render_matches_the_torch_path_values_and_gradients(rng, dtype, rtol):
+    # float64: both paths do the same arithmetic in a different order (rounding ~1e-16 of values
+    # of order 1-100, summed over at most a few hundred pixels per vertex); float32: the kernels keep
+    # scalar temporaries in float64, torch rounds each op to float32 (~6e-8 relative per op, over
+    # ~40 ops and sums of up to ~10^3 terms)
+    verts, faces, e, k = _bumpy_sphere(rng, 2, dtype)
+    albedo = torch.as_tensor(rng.uniform(0.2, 1, (2, verts.shape[1], 3)), dtype=dtype)  # per image
+    sh = torch.stack([torch.as_tensor(sh_from_lights(0.4, (0.3, -0.5, -1.0), 0.8)),
+                      torch.as_tensor(sh_from_lights(0.6, (-0.2, 0.4, -1.0), 0.5))]).to(dtype)
+    compiled, plain = _render_both(verts, faces, e, k, albedo, sh, background=(0.2, 0.3, 0.1), supersample=2,
+                                   adjacency=triangle_adjacency(faces))
+    assert (compiled[4] >= 0).float().mean() > 0.2
+    np.testing.assert_array_equal(compiled[4].numpy(), plain[4].numpy())
+    for name, a, b in zip(["image", "alpha", "depth", "barycentrics", "triangle", "d vertices", "d albedo",
+                           "d sh"], compiled, plain):
+        scale = b.abs().max().item()
+        assert scale > 0, name
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=0, atol=rtol * scale, err_msg=name)
+
+
+def test_compiled_render_with_one_albedo_and_sh_for_the_batch(rng):
+    verts, faces, e, k = _bumpy_sphere(rng, 2)
+    albedo = torch.as_tensor(rng.uniform(0.2, 1, (1, verts.shape[1], 3)))
+    sh = torch.as_tensor(sh_from_lights(0.4, (0.3, -0.5, -1.0), 0.8), dtype=torch.float64)[None]
+    compiled, plain = _render_both(verts, faces, e, k, albedo, sh)
+    for a, b in zip(compiled, plain):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=0, atol=1e-10 * b.abs().max().item())
+
+
+def test_compiled_shading_passes_gradcheck(rng):
+    # a few pixels of a two-image batch, gradients w.r.t. all five differentiable inputs
+    verts, faces, e, k = _bumpy_sphere(rng, 2)
+    pix = renderer.project_points_torch(verts, e, k)
+    depth = verts[..., 2].clone()
+    tri, _ = raster.rasterize_triangles(pix.numpy(), depth.numpy(), faces, 48, 48)
+    covered = np.flatnonzero(tri.reshape(-1) >= 0)
+    pixels = torch.as_tensor(np.sort(rng.choice(covered, 12, replace=False)))
+    corners = torch.as_tensor(faces[tri.reshape(-1)[pixels.numpy()]])
+    normals = vertex_normals(verts, torch.as_tensor(faces))
+    albedo = torch.as_tensor(rng.uniform(0.2, 1, (2, verts.shape[1], 3)))
+    sh = torch.as_tensor(rng.normal(0, 1, (2, 9, 3)))
+    leaves = tuple(t.clone().requires_grad_() for t in (pix, depth, normals, albedo, sh))
+
+    def shade(*args):
+        return shade_pixels(*args, pixels, corners, 48, 48, compiled=True)
+
+    assert torch.autograd.gradcheck(shade, leaves)
+
+
+def test_compiled_vertex_normals_match_and_pass_gradcheck(rng):
+    verts, faces, _, _ = _bumpy_sphere(rng, 2)
+    faces_t = torch.as_tensor(faces)
+    weights = torch.as_tensor(rng.normal(size=verts.shape))
+    grads = []
+    for compiled in (True, False):
+        x = verts.clone().requires_grad_()
+        normals = vertex_normals(x, faces_t, compiled=compiled)
+        (normals * weights).sum().backward()
+        grads.append((normals.detach(), x.grad))
+    np.testing.assert_allclose(grads[0][0].numpy(), grads[1][0].numpy(), atol=1e-12)
+    np.testing.assert_allclose(grads[0][1].numpy(), grads[1][1].numpy(), atol=1e-10)
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(1, radius=2.0)
+    small = torch.as_tensor(np.asarray(sphere.vertices)[None] * rng.uniform(0.8, 1.2, (1, 42, 3))).requires_grad_()
+    small_faces = torch.as_tensor(np.asarray(sphere.faces, np.int64))
+    assert torch.autograd.gradcheck(lambda v: vertex_normals(v, small_faces, compiled=True), (small,))
+
+
+def test_compiled_path_refuses_cuda_tensors_only_when_asked():
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match="compiled: the numba kernels run on the CPU only"):
+            vertex_normals(torch.zeros(1, 3, 3, device="cuda"), torch.tensor([[0, 1, 2]]), compiled=True)
+    with pytest.raises(ValueError, match="compiled: the numba kernels run on the CPU only"):
+        renderer._compiled(torch.device("meta"), torch.float32, True)
+
+
+def test_pruned_silhouette_walk_finds_the_same_pairs(rng):
+    # the walk is skipped from triangles farther than WALK_STEPS - 1 steps from any silhouette edge;
+    # on renders of bumpy spheres at two sizes the pairs must not change
+    verts, faces, e, k = _bumpy_sphere(rng, 3)
+    adjacency = triangle_adjacency(faces)
+    cases = []
+    for size in (48, 160):
+        kk = k.clone()
+        kk[:, :2] *= size / 48
+        kk[:, 2:] = (size - 1) / 2
+        pix = renderer.project_points_torch(verts, e, kk).numpy()
+        tri, zbuf = raster.rasterize_triangles(pix, verts[..., 2].numpy(), faces, size, size)
+        cases.append((tri, zbuf, pix))
+    found = 0
+    for tri, zbuf, pix in cases:
+        outs = []
+        for prune in (False, True):
+            size = 2 * tri.size + 1
+            arrays = [np.empty(size, np.int64) for _ in range(4)]
+            n = raster._pairs_kernel(tri.astype(np.int64), zbuf, np.ascontiguousarray(pix, np.float64), faces,
+                                     adjacency, raster.WALK_STEPS, prune, *arrays)
+            outs.append([a[:n] for a in arrays])
+        for a, b in zip(*outs):
+            np.testing.assert_array_equal(a, b)
+        found += len(outs[0][0])
+    assert found > 100
