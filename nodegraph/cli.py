@@ -32,6 +32,7 @@ from .files import write_text_atomic
 from .graph import Graph
 from .runner import check_scheduler, explain, run
 from .schedule import parse_frames
+from .staging import nearest_existing
 from .types import Files, JsonValue, PortType, Table
 
 __all__ = ["main", "UsageError", "nodes_markdown"]
@@ -166,6 +167,7 @@ def _cmd_run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers: expected >= 1, found {args.workers}")
     cache: Any = False if args.no_cache else (args.cache or None)
+    _check_cache_folder(cache)
     if args.explain:
         rows = explain(graph, frames=frames, chunk=args.chunk, cache=cache, outputs=args.to or None,
                        force=args.force)
@@ -197,6 +199,22 @@ def _cmd_run(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
             print(f"  error records: {records[0]} and {len(records) - 1} more in {Path(records[0]).parent}",
                   file=sys.stderr)
     return result.exit_code
+
+
+def _check_cache_folder(cache: Any) -> None:
+    """Refuse (exit 2, before anything runs) a cache path that names a file or lies under one,
+    or whose nearest existing folder cannot be written: `--cache DIR`, else $NODEGRAPH_CACHE or
+    the default. `cache` is False for --no-cache (nothing to check)."""
+    if cache is False:
+        return
+    root = Path(cache) if cache else cache_dir_from_env()
+    origin = "--cache" if cache else ("$NODEGRAPH_CACHE" if os.environ.get("NODEGRAPH_CACHE") else "the cache")
+    here = nearest_existing(root)
+    if not here.is_dir():
+        what = "is a file" if here == Path(os.path.abspath(root)) else f"lies under the file '{here}'"
+        raise UsageError(f"{origin}: expected a folder for the cache, found '{root}', which {what}")
+    if not os.access(here, os.W_OK | os.X_OK):
+        raise UsageError(f"{origin}: expected a writable folder for the cache, found '{here}' not writable")
 
 
 def _print_tracebacks(failures: Sequence[dict[str, Any]]) -> None:

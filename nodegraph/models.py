@@ -205,6 +205,8 @@ def _mismatches(model: TorchModel, expected: dict[str, Any]) -> list[str]:
                             f"{tuple(array.shape)}")
         elif str(tensor.dtype).removeprefix("torch.") != str(array.dtype):
             problems.append(f"'{key}': the module has dtype {tensor.dtype}, stored {array.dtype}")
+        elif array.dtype.kind == "f" and np.isnan(array).any():  # inf may be meant (masks); NaN never
+            problems.append(f"'{key}': stored {int(np.isnan(array).sum())} NaN values of {array.size}")
     return problems
 
 
@@ -220,7 +222,8 @@ def check_model_weights(model: TorchModel, where: str) -> None:
         where: what to name in the error, e.g. the file it was read from.
     Raises:
         ValueError: "WHERE: ..." for an unknown architecture, a config its builder refuses, or
-            weights whose keys, shapes or dtypes differ from the module's (each one listed).
+            weights whose keys, shapes or dtypes differ from the module's, or float weights
+            holding NaN (each one listed).
     """
     import torch
 

@@ -13,13 +13,17 @@ from nodegraph import InputError, MeshSequence
 
 from ._files import frame_where
 
-__all__ = ["MeshFrame", "MAX_COORDINATE_CM", "fan_triangulate", "check_frame", "check_magnitude",
+__all__ = ["MeshFrame", "MAX_COORDINATE_CM", "MAX_FPS", "fan_triangulate", "check_frame", "check_magnitude",
            "check_mesh_file"]
 
 MAX_COORDINATE_CM = 1e6
 """Largest vertex coordinate a reader accepts, in cm (10 km). Beyond it float32 steps are 0.06 cm
 or coarser, as coarse as the motion a capture measures, and squared distances overflow float32
 near 1e19: a coordinate that large is a unit or export error, never a face."""
+
+MAX_FPS = 1e4
+"""Largest frame rate a file may store (as `nodegraph.performance` accepts): beyond it a take's
+velocities (the dynamics descriptors) and time steps are a unit error, not a capture."""
 
 
 class MeshFrame(NamedTuple):
@@ -118,7 +122,7 @@ def check_magnitude(vertices: np.ndarray, frames: range, file_of) -> None:
 def check_mesh_file(mesh: MeshSequence, path: str, topology_file: str) -> None:
     """Raise InputError (param "path") naming the file when a read mesh is unusable.
 
-    Checks what the file itself stores beyond its vertices: the frame rate (finite, > 0), the
+    Checks what the file itself stores beyond its vertices: the frame rate (finite, in (0, MAX_FPS]), the
     faces ((T, 3) integer indices of existing vertices), uv and vertex groups.
 
     Args:
@@ -127,9 +131,9 @@ def check_mesh_file(mesh: MeshSequence, path: str, topology_file: str) -> None:
         topology_file: the file its faces, uv and groups came from (frame 0's for patterns).
     """
     fps = float(mesh.fps)
-    if not (np.isfinite(fps) and fps > 0):
+    if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
         raise InputError("path", f"file '{path}': expected the frame rate it stores ('fps') finite "
-                                 f"and > 0, found {fps:g}")
+                                 f"and in (0, {MAX_FPS:g}], found {fps:g}")
     faces = np.asarray(mesh.faces)
     count = mesh.vertices.shape[1]
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":

@@ -42,7 +42,8 @@ def _once(err: str, *pieces: str) -> None:
 
 
 @pytest.mark.parametrize("overrides, text", [
-    ({"fps": np.float64(-5.0)}, "expected the frame rate it stores ('fps') finite and > 0, found -5"),
+    ({"fps": np.float64(-5.0)}, "expected the frame rate it stores ('fps') finite and in (0, 10000], found -5"),
+    ({"fps": np.float64(1e308)}, "found 1e+308"),
     ({"fps": np.float64(0.0)}, "found 0"),
     ({"fps": np.float64(np.nan)}, "found nan"),
     ({"fps": np.float64(np.inf)}, "found inf"),
@@ -130,6 +131,7 @@ def _bundled_model():
     ("shape", "'2.weight': the module has shape (128, 128), stored (128, 127)"),
     ("float64", "'0.weight': the module has dtype torch.float32, stored float64"),
     ("missing", "missing from the stored state: ['4.bias']"),
+    ("nan", "'2.weight': stored 16384 NaN values of 16384"),
 ])
 def test_a_model_file_whose_weights_do_not_fit_its_config_is_refused_naming_the_file(
         tmp_path, capsys, suffix, spoil, text):
@@ -142,6 +144,8 @@ def test_a_model_file_whose_weights_do_not_fit_its_config_is_refused_naming_the_
         state["2.weight"] = state["2.weight"][:, :-1]
     elif spoil == "float64":
         state = {key: value.astype(np.float64) for key, value in state.items()}
+    elif spoil == "nan":
+        state["2.weight"] = np.full_like(state["2.weight"], np.nan)
     else:
         del state["4.bias"]
     path = tmp_path / f"removal{suffix}"

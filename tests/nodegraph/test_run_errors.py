@@ -276,3 +276,19 @@ def test_graph_parameters_keep_node_and_parameter_apart(tmp_path):
     assert (gp.node, gp.param, gp.target) == ("shot", "num_frames", "shot.num_frames")
     loaded.apply({"frames": 6})
     assert loaded.nodes["shot"].params["num_frames"] == 6
+
+
+@pytest.mark.parametrize("under", ["", "sub"])
+def test_a_cache_path_that_is_or_lies_under_a_file_is_exit_2_before_running(graph_file, tmp_path, capsys,
+                                                                              monkeypatch, under):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a folder")
+    cache = a_file / under if under else a_file
+    for argv in (["--cache", str(cache)], ["--explain", "--cache", str(cache)]):
+        assert main(["run", str(graph_file), *argv, "--progress", "none"]) == 2
+        err = capsys.readouterr().err
+        assert f"--cache: expected a folder for the cache, found '{cache}'" in err and "Traceback" not in err, err
+    monkeypatch.setenv("NODEGRAPH_CACHE", str(cache))  # the same from the environment
+    assert main(["run", str(graph_file), "--progress", "none"]) == 2
+    assert "$NODEGRAPH_CACHE: expected a folder" in capsys.readouterr().err
+    assert a_file.read_text() == "not a folder"
