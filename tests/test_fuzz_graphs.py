@@ -278,6 +278,8 @@ BAD_VALUES = [
     ("dynamics_train", "rows", "many", "train_removal"),
     ("dynamics_train", "samples", "0", "train_removal"),
     ("dynamics_train", "region", "no_such_region", "face"),
+    ("dynamics_train", "max_vertices", "3", "face"),
+    ("dynamics_retarget", "max_vertices", "9", "face"),
     ("dynamics_train", "model", "out/removal.pt", "save_removal"),
     ("dynamics_train", "synthesis_model", "@a_file", "save_synthesis"),
     ("dynamics_train_captures", "captures", "missing/take_*.npz", "takes"),

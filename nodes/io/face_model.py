@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Mapping
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import SEQUENCE, FaceModel, InputError, Node, NodeParams, Out, Param
 
@@ -192,6 +193,11 @@ def load_face_model(path: str | None = None, *, region: str = "", max_vertices: 
     return model
 
 
+MIN_SAMPLED_VERTICES = 10
+"""Fewest vertices `LoadFaceModel(max_vertices=...)` may keep: stabilize.ModePursuit's own floor
+for `max_vertices`; 3 or 4 points give rigid fits off by tens of degrees under capture noise."""
+
+
 class LoadFaceModel(Node):
     """Load a linear face model (bundled ICT-FaceKit head by default), optionally one region."""
 
@@ -205,7 +211,17 @@ class LoadFaceModel(Node):
         region: str = Param("", description="vertex group to keep ('' = whole head), e.g. 'face', "
                                              "'narrow_face', 'head_neck', 'rigid', 'fitting'")
         max_vertices: int = Param(0, description="> 0: keep at most this many well-spread vertices "
-                                                 "(farthest-point sampling; faces dropped)", ge=0)
+                                                 "(farthest-point sampling; faces dropped); 0 or at least "
+                                                 f"{MIN_SAMPLED_VERTICES}", ge=0)
+
+        @field_validator("max_vertices")
+        @classmethod
+        def _enough(cls, value: int) -> int:  # refused at validation, before any fit or training
+            if 0 < value < MIN_SAMPLED_VERTICES:
+                raise ValueError(f"expected 0 (every vertex) or at least {MIN_SAMPLED_VERTICES} vertices, "
+                                 f"found {value}: fewer are no face (rigid fits, the stabilizer and the "
+                                 "dynamics networks need well-spread points)")
+            return value
 
     model = Out(FaceModel, doc="neutral, expression and identity deltas (cm), faces, groups, landmarks")
 
