@@ -19,8 +19,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-SCRIPTS = ["framework_overhead", "synth_performance", "stabilize", "stabilize_head", "render_landmarks", "fit",
-           "temporal", "dynamics", "export", "gpu", "profile"]
+SCRIPTS = ["framework_overhead", "synth_performance", "stabilize", "stabilize_head", "detect_faces",
+           "render_landmarks", "fit", "temporal", "smoothing", "dynamics", "export", "gpu", "profile"]
 
 
 def run_one(name: str, timeout: float) -> tuple[float, str, list[str]]:
