@@ -79,7 +79,7 @@ from ..geometry.rigid import invert_rigid_torch
 from ..geometry.sampling import farthest_point_sampling_torch
 from .energy import EnergyData, block_energy, default_block_frames, fused_energy
 from .lbfgs import lbfgs
-from .robust import (apply_transforms, frame_blocks, noise_level, residual_scale, rest_mode,
+from .robust import (apply_transforms, frame_blocks, lower_median, noise_level, residual_scale, rest_mode,
                      robust_align, still_vertices)
 from .schedule import DEFAULT_POSITION_WIDTHS, DEFAULT_VELOCITY_WIDTHS, Stage, StageLog, make_schedule
 
@@ -186,7 +186,7 @@ def _still_refinement(verts: Tensor, candidates: Tensor, centre: Tensor, scale: 
     else:
         x = ((verts[:, ids].to(torch.float64) - centre) / scale).to(dev, torch.float32).permute(0, 2, 1).contiguous()
     stab = apply_transforms(x, rot, trans)
-    still = still_vertices(stab, sigma, window=window, centre=stab.median(dim=0).values, kernels=kernels)
+    still = still_vertices(stab, sigma, window=window, centre=lower_median(stab, dim=0), kernels=kernels)
     if int(still.sum()) < max(10, ids.numel() // 10):
         return rot, trans
     rest = stab.mean(dim=0)
@@ -342,7 +342,7 @@ def _robust_initialization(x: Tensor, rot: Tensor, trans: Tensor, rest_x: Tensor
     """
     fixed_rest = rest_x is not None
     if rest_x is None:
-        rest_x = apply_transforms(x, rot, trans).median(dim=0).values.contiguous()
+        rest_x = lower_median(apply_transforms(x, rot, trans), dim=0).contiguous()
     width = float("inf")
     for r in range(rounds):
         dist = apply_transforms(x, rot, trans).sub_(rest_x).square_().sum(1).sqrt_()
@@ -572,7 +572,7 @@ def mode_pursuit(vertices: np.ndarray | Tensor, *, init: np.ndarray | Tensor | N
             with torch.no_grad():
                 rot, trans = _spline_transforms(base, basis)
                 stab0 = torch.baddbmm(trans.to(x.dtype)[:, :, None], rot.to(x.dtype), x)
-                rest_x = stab0.median(dim=0).values.contiguous()                           # (3, E)
+                rest_x = lower_median(stab0, dim=0).contiguous()                         # (3, E)
                 del stab0
         control, rest_x, stages_out = _spline_stages(
             x, base, basis, rest_x, stages, scale=scale, spacing=spline_spacing,

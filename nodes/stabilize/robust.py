@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["still_vertices", "RobustAlignment", "weighted_kabsch", "psi_weights", "robust_align", "rest_mode",
+__all__ = ["lower_median", "still_vertices", "RobustAlignment", "weighted_kabsch", "psi_weights", "robust_align", "rest_mode",
            "noise_level", "residual_scale", "apply_transforms", "kabsch_from_moments", "frame_blocks"]
 
 
@@ -50,6 +50,30 @@ class RobustAlignment(NamedTuple):
     rot: Tensor
     trans: Tensor
     weights: Tensor
+
+
+def lower_median(values: Tensor, dim: int | None = None) -> Tensor:
+    """`torch.median`'s value (of all entries, or along `dim`): the lower middle of an even count.
+
+    On the CPU it selects with numpy's partition (introselect) instead of torch's median, which
+    sorts: the same values bit for bit, 5-10x faster (651 x 3 x 26,719 float32 along frames:
+    0.65 s against 3.6 s at one thread on a loaded 2-core machine). Other devices and tensors
+    that need a gradient use `torch.median`. Entries must be finite (a NaN is not propagated
+    on the CPU path).
+
+    Args:
+        values: float tensor, any shape (non-empty along `dim`).
+        dim: the axis reduced; None = all entries.
+    Returns:
+        A 0-d tensor (dim None) or `values` without `dim`, values' dtype and device.
+    """
+    if values.device.type != "cpu" or values.requires_grad or values.numel() == 0 \
+            or values.dtype not in (torch.float32, torch.float64):
+        return values.median() if dim is None else values.median(dim=dim).values
+    array = values.numpy().reshape(-1) if dim is None else values.numpy()
+    axis = 0 if dim is None else dim % array.ndim
+    k = (array.shape[axis] - 1) // 2
+    return torch.from_numpy(np.ascontiguousarray(np.partition(array, k, axis=axis).take(k, axis=axis)))
 
 
 def apply_transforms(x: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
@@ -137,7 +161,7 @@ def residual_scale(distance: Tensor) -> float:
     flat = distance.reshape(-1)
     if flat.numel() > 1 << 20:  # a strided subset is as good a median and much faster
         flat = flat[:: flat.numel() // (1 << 20) + 1]
-    return float(flat.median())
+    return float(lower_median(flat))
 
 
 def robust_align(x: Tensor, rest: Tensor, rot: Tensor, trans: Tensor, width: float, *,
@@ -252,7 +276,7 @@ def rest_mode(stab: Tensor, radius: float, *, start: Tensor | None = None, steps
     r2 = radius * radius
     if start is not None:
         return _mean_shift(stab, start, r2, steps, block_frames)
-    median = stab.median(dim=0).values
+    median = lower_median(stab, dim=0)
     if f <= 2:
         return median
     picks = torch.unique(torch.linspace(0, f - 1, min(candidates, f), device=stab.device).round().long())
@@ -298,7 +322,7 @@ def noise_level(stab: Tensor) -> float:
     d2 = (stab[2:] - 2.0 * stab[1:-1] + stab[:-2]).abs().reshape(-1)
     if d2.numel() > 1 << 21:
         d2 = d2[:: d2.numel() // (1 << 21) + 1]
-    return float(d2.median()) * 1.4826 / math.sqrt(6.0)
+    return float(lower_median(d2)) * 1.4826 / math.sqrt(6.0)
 
 
 
