@@ -73,7 +73,7 @@ def lower_median(values: Tensor, dim: int | None = None) -> Tensor:
     array = values.numpy().reshape(-1) if dim is None else values.numpy()
     axis = 0 if dim is None else dim % array.ndim
     k = (array.shape[axis] - 1) // 2
-    return torch.from_numpy(np.ascontiguousarray(np.partition(array, k, axis=axis).take(k, axis=axis)))
+    return torch.from_numpy(np.asarray(np.partition(array, k, axis=axis).take(k, axis=axis)))  # 0-d for dim None
 
 
 def apply_transforms(x: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
