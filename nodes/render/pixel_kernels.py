@@ -13,6 +13,9 @@ pixel or every triangle):
   normalized (norm clamped to 1e-12), the 9 SH basis values and `colour = albedo * E(n)`;
   backward: the gradients w.r.t. the projected vertices, their camera depths, the vertex
   normals, the albedo and the SH coefficients, scattered over the pixels' corners.
+- `antialias_forward` / `antialias_backward`: the silhouette blends of the analytic
+  antialiasing over the pixel pairs `raster.silhouette_pairs` found, and their gradients
+  w.r.t. the image and (through where the edge crosses each pair) the projected vertices.
 
 Each backward recomputes its forward's intermediates from the inputs (a few multiplies per
 pixel) rather than storing them. The math is the torch path's, term by term (the torch path
@@ -34,7 +37,8 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward"]
+__all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward", "antialias_forward",
+           "antialias_backward"]
 
 _Y0, _Y1, _Y2A, _Y2B, _Y2C = 0.282094791773878, 0.488602511902920, 1.092548430592079, \
     0.315391565252520, 0.546274215296040
@@ -377,3 +381,128 @@ def _sum_products(basis, g, pixels, image_size, one, out):  # pragma: no cover -
         for j in range(9):
             for c in range(3):
                 out[b, j, c] += basis[n, j] * g[n, c]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _edge_barycentric(pix2, r0, r1, r2, k, px, py):  # pragma: no cover - compiled
+    """Barycentric k of point (px, py) in triangle (rows r0, r1, r2 of pix2), as
+    `renderer.screen_barycentrics` (l2 = 1 - l0 - l1)."""
+    x0, y0 = pix2[r0, 0], pix2[r0, 1]
+    x1, y1 = pix2[r1, 0], pix2[r1, 1]
+    x2, y2 = pix2[r2, 0], pix2[r2, 1]
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
+    l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+    if k == 0:
+        return l0
+    if k == 1:
+        return l1
+    return 1.0 - l0 - l1
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _add_edge_barycentric_grad(pix2, gp2, r0, r1, r2, k, px, py, g):  # pragma: no cover - compiled
+    """gp2 += g * d l_k / d corners (l_k of `_edge_barycentric`; l2 = 1 - l0 - l1)."""
+    x0, y0 = pix2[r0, 0], pix2[r0, 1]
+    x1, y1 = pix2[r1, 0], pix2[r1, 1]
+    x2, y2 = pix2[r2, 0], pix2[r2, 1]
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    cr0 = (x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)
+    cr1 = (x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)
+    g0 = g if k == 0 else (-g if k == 2 else 0.0)  # d loss / d l0, d l1
+    g1 = g if k == 1 else (-g if k == 2 else 0.0)
+    g_c0, g_c1 = g0 / area, g1 / area
+    g_area = -(g0 * cr0 + g1 * cr1) / (area * area)
+    gp2[r0, 0] += -g_c1 * (y2 - py) + g_area * (y1 - y2)
+    gp2[r0, 1] += g_c1 * (x2 - px) + g_area * (x2 - x1)
+    gp2[r1, 0] += g_c0 * (y2 - py) + g_area * (y2 - y0)
+    gp2[r1, 1] += -g_c0 * (x2 - px) - g_area * (x2 - x0)
+    gp2[r2, 0] += -g_c0 * (y1 - py) + g_c1 * (y0 - py) - g_area * (y1 - y0)
+    gp2[r2, 1] += g_c0 * (x1 - px) - g_c1 * (x0 - px) + g_area * (x1 - x0)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _pair_alpha(pix2, faces, nv, height, width, occ, far, tri, edge, m):  # pragma: no cover - compiled
+    """Where the silhouette edge of pair m crosses its segment (0 at the occluder's centre)."""
+    size = height * width
+    b = occ[m] // size
+    t = tri[m]
+    r0, r1, r2 = b * nv + faces[t, 0], b * nv + faces[t, 1], b * nv + faces[t, 2]
+    ro = occ[m] - b * size
+    rf = far[m] - b * size
+    oy, fy = ro // width, rf // width
+    ox, fx = float(ro - oy * width), float(rf - fy * width)
+    l_occ = _edge_barycentric(pix2, r0, r1, r2, edge[m], ox, float(oy))
+    l_far = _edge_barycentric(pix2, r0, r1, r2, edge[m], fx, float(fy))
+    return l_occ, l_far, l_occ / (l_occ - l_far), r0, r1, r2, ox, float(oy), fx, float(fy)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _antialias_forward_kernel(colour, pix, faces, height, width, occ, far, tri, edge, out):  # pragma: no cover
+    nv = pix.shape[1]
+    pix2 = pix.reshape(-1, 2)
+    for m in range(occ.shape[0]):
+        alpha = _pair_alpha(pix2, faces, nv, height, width, occ, far, tri, edge, m)[2]
+        o, f = occ[m], far[m]
+        if alpha >= 0.5:  # the edge lies past the midpoint: the far pixel takes some occluder colour
+            w = alpha - 0.5
+            for c in range(colour.shape[1]):
+                out[f, c] += w * (colour[o, c] - colour[f, c])
+        else:
+            w = 0.5 - alpha
+            for c in range(colour.shape[1]):
+                out[o, c] += w * (colour[f, c] - colour[o, c])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _antialias_backward_kernel(colour, pix, faces, height, width, occ, far, tri, edge, grad,
+                               g_colour, g_pix):  # pragma: no cover - compiled
+    nv = pix.shape[1]
+    pix2 = pix.reshape(-1, 2)
+    gp2 = g_pix.reshape(-1, 2)
+    for m in range(occ.shape[0]):
+        l_occ, l_far, alpha, r0, r1, r2, ox, oy, fx, fy = _pair_alpha(pix2, faces, nv, height, width, occ, far,
+                                                                      tri, edge, m)
+        o, f = occ[m], far[m]
+        spill = alpha >= 0.5
+        target = f if spill else o
+        sign = 1.0 if spill else -1.0  # delta = sign (alpha - 1/2) sign (c_occ - c_far)
+        w = sign * (alpha - 0.5)
+        g_w = 0.0
+        for c in range(colour.shape[1]):
+            gd = grad[target, c]
+            g_w += gd * sign * (colour[o, c] - colour[f, c])
+            g_colour[o, c] += sign * w * gd
+            g_colour[f, c] -= sign * w * gd
+        g_alpha = sign * g_w
+        d = l_occ - l_far  # alpha = l_occ / (l_occ - l_far)
+        g_lo = -l_far / (d * d) * g_alpha
+        g_lf = l_occ / (d * d) * g_alpha
+        k = edge[m]
+        _add_edge_barycentric_grad(pix2, gp2, r0, r1, r2, k, ox, oy, g_lo)
+        _add_edge_barycentric_grad(pix2, gp2, r0, r1, r2, k, fx, fy, g_lf)
+
+
+def antialias_forward(colour: np.ndarray, pix: np.ndarray, faces: np.ndarray, height: int, width: int,
+                      occ: np.ndarray, far: np.ndarray, tri: np.ndarray, edge: np.ndarray) -> np.ndarray:
+    """The silhouette blends of `renderer._antialias` (module docstring there, step 5).
+
+    Args:
+        colour: (B * H * W, C) image, C-contiguous; pix: (B, V, 2) projected vertices;
+        faces: (T, 3) int64; occ, far, tri, edge: (M,) int64 pairs of `raster.silhouette_pairs`.
+    Returns:
+        (B * H * W, C) the image with the blends added (the blends read `colour`, not each other).
+    """
+    out = colour.copy()
+    _antialias_forward_kernel(colour, pix, faces, height, width, occ, far, tri, edge, out)
+    return out
+
+
+def antialias_backward(colour: np.ndarray, pix: np.ndarray, faces: np.ndarray, height: int, width: int,
+                       occ: np.ndarray, far: np.ndarray, tri: np.ndarray, edge: np.ndarray,
+                       grad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients of `antialias_forward` w.r.t. colour (B * H * W, C) and pix (B, V, 2)."""
+    g_colour = grad.copy()
+    g_pix = np.zeros(pix.shape, pix.dtype)
+    _antialias_backward_kernel(colour, pix, faces, height, width, occ, far, tri, edge, grad, g_colour, g_pix)
+    return g_colour, g_pix

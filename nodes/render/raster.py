@@ -17,6 +17,7 @@ from node `run()` methods or torch modules only, never from a package `__init__`
 
 from __future__ import annotations
 
+import math
 
 import numba
 import numpy as np
@@ -34,19 +35,22 @@ def _raster_kernel(pix, depth, faces, near, tri_out, z_out):  # pragma: no cover
     for b in range(batch):
         for t in range(faces.shape[0]):
             i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
-            z0, z1, z2 = depth[b, i0], depth[b, i1], depth[b, i2]
-            if not (z0 > near and z1 > near and z2 > near):
-                continue
             x0, y0 = pix[b, i0, 0], pix[b, i0, 1]
             x1, y1 = pix[b, i1, 0], pix[b, i1, 1]
             x2, y2 = pix[b, i2, 0], pix[b, i2, 1]
-            area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-            if not (area != 0.0 and np.isfinite(area)):
-                continue
             xa = min(x0, min(x1, x2))
             xb = max(x0, max(x1, x2))
             ya = min(y0, min(y1, y2))
             yb = max(y0, max(y1, y2))
+            # no pixel centre in the box (most triangles of a dense mesh at this size; NaN too)
+            if not (math.ceil(xa) <= math.floor(xb) and math.ceil(ya) <= math.floor(yb)):
+                continue
+            z0, z1, z2 = depth[b, i0], depth[b, i1], depth[b, i2]
+            if not (z0 > near and z1 > near and z2 > near):
+                continue
+            area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+            if not (area != 0.0 and np.isfinite(area)):
+                continue
             if xb < 0.0 or yb < 0.0 or xa > width - 1 or ya > height - 1:
                 continue
             xmin = max(int(np.ceil(xa)), 0)

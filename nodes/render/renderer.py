@@ -55,7 +55,8 @@ from torch import Tensor
 from ..geometry.camera import project_points_torch
 from ..geometry.image import box_downsample
 from ..geometry.mesh import triangle_adjacency
-from .pixel_kernels import normals_backward, normals_forward, shade_backward, shade_forward
+from .pixel_kernels import (antialias_backward, antialias_forward, normals_backward, normals_forward,
+                            shade_backward, shade_forward)
 from .raster import rasterize_triangles, silhouette_pairs
 
 __all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals",
@@ -300,8 +301,24 @@ def _signed_area(corners: Tensor) -> Tensor:
         (p2[..., 0] - p0[..., 0]) * (p1[..., 1] - p0[..., 1])
 
 
+class _CompiledAntialias(torch.autograd.Function):
+    """The blends of `_antialias` on the CPU by the numba kernels of `pixel_kernels`."""
+
+    @staticmethod
+    def forward(ctx, colour: Tensor, pix: Tensor, faces: np.ndarray, height: int, width: int,  # type: ignore[override]
+                *pairs: np.ndarray) -> Tensor:
+        c, p = colour.detach().contiguous().numpy(), pix.detach().contiguous().numpy()
+        ctx.arrays, ctx.dtype = (c, p, faces, height, width) + pairs, colour.dtype
+        return torch.from_numpy(antialias_forward(c, p, faces, height, width, *pairs))
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        g_colour, g_pix = antialias_backward(*ctx.arrays, grad.detach().to(ctx.dtype).contiguous().numpy())
+        return (torch.from_numpy(g_colour), torch.from_numpy(g_pix)) + (None,) * 7
+
+
 def _antialias(colour: Tensor, tri: Tensor, zbuf: Tensor, pix: Tensor, faces: Tensor,
-               adjacency: np.ndarray) -> Tensor:
+               adjacency: np.ndarray, compiled: bool = False) -> Tensor:
     """Analytic silhouette antialiasing (see the module docstring, step 5).
 
     The pairs and their silhouette edges are found by `raster.silhouette_pairs` (discrete);
@@ -313,15 +330,19 @@ def _antialias(colour: Tensor, tri: Tensor, zbuf: Tensor, pix: Tensor, faces: Te
         zbuf: (B, H, W) camera z of the visible surface, +inf none.
         pix: (B, V, 2) projected vertices, pixels.
         faces: (T, 3) int64; adjacency: (T, 3) int64 (`triangle_adjacency`).
+        compiled: blend by the numba kernels (CPU tensors) rather than torch ops.
     Returns:
         (B, H, W, C) the image with the silhouette blends added.
     """
     bsz, height, width, channels = colour.shape
-    occ, far, t, edge = (torch.from_numpy(a).to(colour.device) for a in silhouette_pairs(
-        tri.cpu().numpy(), zbuf.cpu().numpy(), pix.detach().cpu().numpy(), faces.cpu().numpy(),
-        adjacency))
-    if occ.numel() == 0:
+    faces_np = np.ascontiguousarray(faces.cpu().numpy(), np.int64)
+    pairs = silhouette_pairs(tri.cpu().numpy(), zbuf.cpu().numpy(), pix.detach().cpu().numpy(), faces_np, adjacency)
+    if len(pairs[0]) == 0:
         return colour
+    if compiled:
+        return _CompiledAntialias.apply(colour.reshape(-1, channels), pix, faces_np, height, width,
+                                        *pairs).reshape(colour.shape)
+    occ, far, t, edge = (torch.from_numpy(a).to(colour.device) for a in pairs)
     flat = colour.reshape(-1, channels)
     batch = occ // (height * width)
     corners = pix[batch[:, None], faces[t]]  # (M, 3, 2)
@@ -425,7 +446,8 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
                 intrinsics: Tensor, height: int, width: int, *, albedo: Tensor, sh: Tensor,
                 background: Tensor | Sequence[float] = (0.0, 0.0, 0.0),
                 distortion: Tensor | None = None, antialias: bool = True, supersample: int = 1,
-                near: float = 1e-3, adjacency: np.ndarray | Tensor | None = None) -> RenderOutput:
+                near: float = 1e-3, adjacency: np.ndarray | Tensor | None = None,
+                compiled: bool | None = None) -> RenderOutput:
     """Render B views of a mesh with per-vertex albedo and SH lighting (differentiable).
 
     Args:
@@ -447,6 +469,9 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
         near: triangles with a corner closer than this (cm, camera z) are not drawn.
         adjacency: (T, 3) `triangle_adjacency(faces)`, computed when None (pass it when
             rendering the same topology often).
+        compiled: the shading, normals and antialiasing by the numba kernels of
+            `pixel_kernels` (True, CPU tensors only) or torch ops (False); None: the kernels on
+            the CPU in float32 / float64, torch ops otherwise (the two agree to rounding).
     Returns:
         RenderOutput; with `supersample > 1`, image and alpha are block averages and
         depth / triangle / barycentrics are those of sample (s // 2, s // 2) of each block.
@@ -506,8 +531,10 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     idx_np = np.flatnonzero(tri_np.reshape(-1) >= 0)  # the covered pixels, ascending
     idx = torch.from_numpy(idx_np).to(dev)
     corners = torch.from_numpy(np.ascontiguousarray(faces_np, np.int64)[tri_np.reshape(-1)[idx_np]]).to(dev)
-    normals = vertex_normals(vertices, faces_t)
-    shaded, mu, depth_p = shade_pixels(pix, depth_v, normals, albedo, sh, idx, corners, hs, ws)
+    use_kernels = _compiled(dev, dt, compiled)
+    normals = vertex_normals(vertices, faces_t, compiled=use_kernels)
+    shaded, mu, depth_p = shade_pixels(pix, depth_v, normals, albedo, sh, idx, corners, hs, ws,
+                                       compiled=use_kernels)
 
     npix = bsz * hs * ws
     # separate buffers: a loss on the image alone then never back-propagates through depth
@@ -520,7 +547,7 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     if antialias:
         adj = triangle_adjacency(faces_t.cpu().numpy()) if adjacency is None else \
             np.asarray(adjacency.cpu() if isinstance(adjacency, Tensor) else adjacency, np.int64)
-        image = _antialias(image, tri, zbuf, pix, faces_t, adj)
+        image = _antialias(image, tri, zbuf, pix, faces_t, adj, use_kernels)
     depth = geometry[:, 0].reshape(bsz, hs, ws)
     bary = geometry[:, 1:4].reshape(bsz, hs, ws, 3)
     if s > 1:

@@ -4,8 +4,6 @@ pruned silhouette walk against the unpruned one."""
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import pytest
 
@@ -36,13 +34,8 @@ def _render_both(verts, faces, e, k, albedo, sh, **kwargs):
     results = []
     for compiled in (True, False):
         leaves = [t.clone().requires_grad_() for t in (verts, albedo, sh)]
-        shade, normals = renderer.shade_pixels, renderer.vertex_normals
-        renderer.shade_pixels = functools.partial(shade, compiled=compiled)
-        renderer.vertex_normals = functools.partial(normals, compiled=compiled)
-        try:
-            out = render_mesh(leaves[0], faces, e, k, 48, 48, albedo=leaves[1], sh=leaves[2], **kwargs)
-        finally:
-            renderer.shade_pixels, renderer.vertex_normals = shade, normals
+        out = render_mesh(leaves[0], faces, e, k, 48, 48, albedo=leaves[1], sh=leaves[2], compiled=compiled,
+                          **kwargs)
         g = torch.Generator().manual_seed(3)
         w = torch.randn(out.image.shape, generator=g, dtype=verts.dtype)
         loss = (out.image * w).sum() + 0.1 * out.depth.sum() + (out.barycentrics * w).sum() + out.alpha.sum()
