@@ -108,8 +108,11 @@ def fit_rigid(points_src: np.ndarray, points_ref: np.ndarray, weights: np.ndarra
     # relative for heads within metres of the origin). 5-10x faster than einsum on whole heads.
     mean_src = (wn[..., None, :] @ src)[..., 0, :]
     mean_ref = (wn[..., None, :] @ ref)[..., 0, :]
-    weighted_ref = ref / n if weights is None else ref * wn[..., None]
-    cov = np.swapaxes(weighted_ref, -1, -2) @ src - mean_ref[..., :, None] * mean_src[..., None, :]
+    if weights is None:  # x^T y with the small transposed operand: no (..., N, 3) temporary
+        moment = np.swapaxes(np.swapaxes(src, -1, -2) @ ref, -1, -2) / n
+    else:
+        moment = np.swapaxes(ref * wn[..., None], -1, -2) @ src
+    cov = moment - mean_ref[..., :, None] * mean_src[..., None, :]
     u, sing, vt = np.linalg.svd(cov)
     d = np.sign(np.linalg.det(u @ vt))
     d = np.where(d == 0, 1.0, d)
