@@ -48,7 +48,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .files import file_sha256, staged_location, write_bytes_atomic, write_text_atomic
+from .files import HashingWriter, file_sha256, staged_location, write_bytes_atomic, write_text_atomic
 from .staging import unstaged
 from .types import Files, PortType, port_type_by_name
 from .writer_tag import HOST, WriterTag, pid_alive
@@ -102,31 +102,6 @@ def _valid_manifest(manifest: Any) -> bool:
     copies = manifest.get("copies", [])
     return isinstance(copies, list) and all(
         isinstance(c, dict) and c.get("file") in files and isinstance(c.get("path"), str) for c in copies)
-
-
-class _HashingWriter:
-    """A write-only stream that hashes what passes through it.
-
-    Having no `tell`/`seek`, it makes `zipfile` (under `np.savez`) write the archive
-    strictly forward (sizes in data descriptors), so the sha256 of the bytes written is the
-    file's without reading the file back.
-    """
-
-    def __init__(self, fh: Any) -> None:
-        self._fh = fh
-        self.digest = hashlib.sha256()
-        self.size = 0
-
-    def write(self, data: bytes) -> int:
-        self.digest.update(data)
-        self.size += len(data)
-        return self._fh.write(data)
-
-    def flush(self) -> None:
-        self._fh.flush()
-
-    def read(self, *args: Any) -> bytes:  # np.savez tells files from paths by a `read` attribute
-        raise io.UnsupportedOperation("write-only stream")
 
 
 class Cache:
@@ -387,7 +362,7 @@ class Cache:
             for port, value in values.items():
                 name = f"{port}.npz"
                 with open(tmp / name, "wb") as fh:
-                    writer = _HashingWriter(fh)
+                    writer = HashingWriter(fh)
                     np.savez(writer, **value.to_arrays())
                 files[name] = {"size": writer.size, "sha256": writer.digest.hexdigest()}
                 ports[port] = {"file": name, "type": value.type_name}

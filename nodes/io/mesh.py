@@ -37,7 +37,7 @@ from nodegraph.files import atomic_path, files_value
 
 from ._files import (check_frame_range, check_no_missing_files, expand_frame_pattern, find_frame_numbers, format_of,
                      frame_token, frame_where, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
-from .mesh_frame import MeshFrame, check_frame, check_magnitude, check_mesh_file, fan_triangulate
+from .mesh_frame import MAX_COORDINATE_CM, MeshFrame, check_frame, check_magnitude, check_mesh_file, fan_triangulate
 from .usd import load_usd_mesh, save_usd_mesh, usd_mesh_frame_count
 
 __all__ = [
@@ -342,12 +342,18 @@ def _load_npz(path: str, frames: range, fps: float) -> MeshSequence:
         raise InputError("path", f"file '{path}': expected a readable .npz mesh sequence, found "
                                  f"an unreadable or truncated file ({type(err).__name__}: {err})") from err
     vertices = vertices.astype(np.float32, copy=False)
-    bad = ~np.isfinite(vertices)
-    if bad.any():
-        i, v = (int(x) for x in np.argwhere(bad)[0][:2])
-        raise InputError("path", f"{frame_where(frames[i], path)}: expected finite vertices, found "
-                                 f"NaN/inf at vertex {v}")
-    check_magnitude(vertices, frames, lambda f: path)
+    # Two reductions prove the rows finite and within MAX_COORDINATE_CM (min / max propagate
+    # NaN; +-inf is beyond any bound) without (F, V, 3) temporaries; only a failure looks for
+    # the first bad element.
+    with np.errstate(invalid="ignore"):
+        lo, hi = (float(vertices.min()), float(vertices.max())) if vertices.size else (0.0, 0.0)
+    if not (-lo <= MAX_COORDINATE_CM and hi <= MAX_COORDINATE_CM):  # NaN fails both
+        bad = ~np.isfinite(vertices)
+        if bad.any():
+            i, v = (int(x) for x in np.argwhere(bad)[0][:2])
+            raise InputError("path", f"{frame_where(frames[i], path)}: expected finite vertices, found "
+                                     f"NaN/inf at vertex {v}")
+        check_magnitude(vertices, frames, lambda f: path)
     return MeshSequence(vertices=vertices, faces=faces, uv=uv, uv_faces=uv_faces, groups=groups,
                         fps=fps)
 
