@@ -33,6 +33,7 @@ import hashlib
 import inspect
 import json
 import traceback
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping
@@ -303,6 +304,13 @@ def _where(node: Node, chunk: range) -> tuple[int, int] | None:
     return (chunk.start, chunk.stop) if node.kind != SEQUENCE else None
 
 
+_VALIDATED: "weakref.WeakSet[PortType]" = weakref.WeakSet()
+"""Node outputs that passed `validate` in this process (by identity, dropped when the value
+dies): a value a task produced and checked is not checked again as the input of each of its
+readers (a whole-head capture: one pass over 210 MB per reader). Values built elsewhere, and
+joined or sliced chunks (new objects), are checked as inputs as before."""
+
+
 def _check_value(node: Node, port: In, value: Any, expected_frames: int | None, direction: str,
                  chunk: range) -> None:
     if not isinstance(value, port.type):
@@ -310,10 +318,20 @@ def _check_value(node: Node, port: In, value: Any, expected_frames: int | None, 
                         f"{direction} expected {port.type.type_name}, found {type(value).__name__}",
                         port=port.name, frames=_where(node, chunk), bad_input=direction == "input")
     try:
-        value.validate(f"{port.type.type_name}")
-    except ValueError as err:
-        raise NodeError(node.node_id, node.type_name, f"{direction} {err}", port=port.name,
-                        frames=_where(node, chunk), bad_input=direction == "input") from err
+        known = direction == "input" and value in _VALIDATED
+    except TypeError:  # a port type that is not hashable (a dataclass with eq): always checked
+        known = False
+    if not known:
+        try:
+            value.validate(f"{port.type.type_name}")
+        except ValueError as err:
+            raise NodeError(node.node_id, node.type_name, f"{direction} {err}", port=port.name,
+                            frames=_where(node, chunk), bad_input=direction == "input") from err
+        if direction == "output":
+            try:
+                _VALIDATED.add(value)
+            except TypeError:
+                pass
     if port.per_frame and expected_frames is not None and value.num_frames != expected_frames:
         raise NodeError(node.node_id, node.type_name,
                         f"{direction} expected {expected_frames} frames, found {value.num_frames}",

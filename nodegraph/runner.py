@@ -166,6 +166,16 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
          outputs: Iterable[str] | None, force: Iterable[str], mode: str, workers: int | None, device: str,
          started: float) -> RunResult:
     token = new_token()  # names this run's staging folders (see nodegraph.staging)
+    if store is None and scheduler in IN_PROCESS and not outputs:
+        # Without a cache every node runs: start their slow imports now, so that they overlap
+        # planning (the content hash of the input files releases the GIL) instead of following it.
+        early = []
+        for nid in graph.nodes:
+            try:
+                early += graph.node_class(nid).preload
+            except Exception:  # noqa: BLE001 - an unknown type is reported by planning
+                pass
+        preload(early)
     for attempt in range(2):
         plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
                         force=force, device=device)
