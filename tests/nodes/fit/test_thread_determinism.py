@@ -13,6 +13,12 @@ which a flat valley (the float32 solves: 0.79 and 1.5 deg on a real video) break
 times the estimate above, 1e-3 in the weights and 0.01 deg, which the float32 solves broke even
 on this small shot (measured on a 2-core machine, 4 threads against 1: weights 1.15e-3, rotation
 0.0205 deg, translation 4.7e-3 cm; the float64 solves: all 0.0).
+
+In one process torch's thread count alone left these solves bit-identical, so the runs at 2 and
+4 threads also read plate landmarks moved by +-`NUDGE_PX` (twice the 6e-5 px that
+OMP_NUM_THREADS 1 against 2 moved the network's plate points on a 6-frame shot): what the test
+bounds is how far the fit follows such a rounding, which a jump (a render landmark changing the
+triangle it is anchored on, a stalled solve) makes far more than the linear estimate above.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("numba")
 pytest.importorskip("tflite")
 
-from nodegraph import Camera, ImageSequence, run_node  # noqa: E402
+from nodegraph import Camera, ImageSequence, Landmarks2D, run_node  # noqa: E402
 from nodes.fit import EstimateIdentity, Expression, RigidPose  # noqa: E402
 from tests.support.synthetic import random_face_parameters, render_truth_plates  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
@@ -32,6 +38,16 @@ from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
 
 FRAMES = 2
 SIZE = 256
+NUDGE_PX = 1e-4
+"""Plate landmarks moved by this much in the 2- and 4-thread runs (see the module docstring)."""
+
+
+def _nudged(marks: dict, seed: int) -> dict:
+    """The network's 68 and 468 plate points, each coordinate moved by +-NUDGE_PX."""
+    rng = np.random.default_rng(seed)
+    return {k: Landmarks2D(points=(marks[k].points + NUDGE_PX * rng.choice([-1.0, 1.0], marks[k].points.shape))
+                           .astype(np.float32), confidence=marks[k].confidence)
+            for k in ("landmarks468", "landmarks68")}
 
 
 def _rotation_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -66,7 +82,7 @@ def test_one_two_and_four_threads_give_the_same_fit():
     seq = ImageSequence(render_truth_plates(model, [cam], truth)[0], colour_space="linear")
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     marks = run_node(FaceLandmarks, images=seq, boxes=boxes)
-    fits = {n: _fit(model, cam, seq, boxes, marks, n) for n in (1, 2, 4)}
+    fits = {n: _fit(model, cam, seq, boxes, marks if n == 1 else _nudged(marks, n), n) for n in (1, 2, 4)}
     ref = fits[1]
     assert np.isfinite(ref["weights"]).all() and np.isfinite(ref["rot"]).all()
     # a fit, not a failure repeated three times (measured 7.4 deg median: 2 frames, landmarks
@@ -76,7 +92,7 @@ def test_one_two_and_four_threads_give_the_same_fit():
         got = fits[n]
         dw = np.abs(got["weights"] - ref["weights"]).max()
         drot = _rotation_deg(got["rot"], ref["rot"]).max()
-        print(f"threads {n} against 1: weights {dw:.2e}, rotation {drot:.2e} deg, translation "
+        print(f"threads {n} (nudged) against 1: weights {dw:.2e}, rotation {drot:.2e} deg, translation "
               f"{np.abs(got['trans'] - ref['trans']).max():.2e} cm, identity "
               f"{np.abs(got['identity'] - ref['identity']).max():.2e}")
         assert dw < 0.02, (n, dw)
