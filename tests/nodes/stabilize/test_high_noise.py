@@ -37,18 +37,35 @@ def _median(perf, matrices: np.ndarray) -> float:
     return stabilization_errors(matrices, perf.rigid.matrices, perf.stabilized.vertices).summary()["median_cm"]
 
 
+def _procrustes_rigid(perf) -> np.ndarray:
+    reference = run_node(ReferenceFrame, {"frame": 0}, mesh=perf.capture)["reference"]
+    return run_node(Procrustes, {"group": "rigid"}, mesh=perf.capture, reference=reference)["rigid"].matrices
+
+
 def test_mode_pursuit_beats_procrustes_on_the_rigid_group_at_0_1_cm_noise(noisy_head):
     perf = noisy_head
-    reference = run_node(ReferenceFrame, {"frame": 0}, mesh=perf.capture)["reference"]
-    procrustes = run_node(Procrustes, {"group": "rigid"}, mesh=perf.capture, reference=reference)["rigid"]
     result = mode_pursuit(perf.capture.vertices)
-    ours, theirs = _median(perf, result.matrices), _median(perf, procrustes.matrices)
+    ours, theirs = _median(perf, result.matrices), _median(perf, _procrustes_rigid(perf))
     without = _median(perf, mode_pursuit(perf.capture.vertices, still_refinement=False).matrices)
     print(f"median cm: mode pursuit {ours:.5f}, without the still refinement {without:.5f}, "
           f"Procrustes on 'rigid' {theirs:.5f}")
     assert 0.08 < result.plan.noise_cm < 0.12  # estimated from 2nd differences of 12 M coordinates
     assert ours <= 0.8 * theirs, (ours, theirs)
     assert ours < without
+
+
+@pytest.mark.parametrize("noise_cm", [0.01, 0.03])
+def test_mode_pursuit_beats_procrustes_on_the_rigid_group_at_lower_noise(noise_cm: float):
+    """The same bound (module docstring: the still vertices outnumber 'rigid' 4x, so half the
+    error, 0.8x asked) at the capture noise of the other situations (0.01 cm) and between.
+    Measured (seed 0, 150 frames): 0.00014 / 0.00057 cm at 0.01, 0.00040 / 0.00161 at 0.03,
+    0.00130 / 0.00532 at 0.1 (ratio 0.24-0.25 at each level)."""
+    perf = generate_performance(load_face_model(region=""), num_frames=150, seed=0, noise_cm=noise_cm)
+    result = mode_pursuit(perf.capture.vertices)
+    ours, theirs = _median(perf, result.matrices), _median(perf, _procrustes_rigid(perf))
+    print(f"{noise_cm} cm noise, median cm: mode pursuit {ours:.5f}, Procrustes on 'rigid' {theirs:.5f}")
+    assert 0.8 * noise_cm < result.plan.noise_cm < 1.2 * noise_cm
+    assert ours <= 0.8 * theirs, (ours, theirs)
 
 
 def test_still_vertices_keep_noise_and_drop_smooth_motion():
