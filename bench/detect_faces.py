@@ -10,6 +10,10 @@ holding the astronaut with an eye distance of 25 px:
                        letterboxed to 128 x 128; misses this face)
   pyramid min_face N   the whole frame plus the finer levels for faces of box side >= N px
                        (`min_face_px`, default 40: an eye distance of about 19 px)
+  full range, whole    BlazeFace full range on the frame letterboxed to 192 x 192
+  frame                (`detect_full_range`: TrackFaces' full-range look); "found" = a box
+                       centred within one eye distance of the face's, but on this 55 px face
+                       its box is about 100 px: it finds boxes from about 100 px in 1080p
   mesh, roll passes K  crop + face mesh with the crop turned by the detector's roll and then
                        K more passes by the points' own eye line (`FaceLandmarks.roll_passes`)
 Then, unless `--no-cases`, every case of `tests/nodes/landmarks/cases.py` at 4 placements:
@@ -85,8 +89,8 @@ def main() -> None:
     from cases import CASES, error_percent, make_case
 
     from nodes.landmarks.correspondence import MEDIAPIPE_TO_68
-    from nodes.landmarks.network import (detect_faces, load_face_detector, load_face_mesh, pyramid_scales,
-                                         upright_face_landmarks)
+    from nodes.landmarks.network import (detect_faces, detect_full_range, load_face_detector, load_face_mesh,
+                                         load_full_range_detector, pyramid_scales, upright_face_landmarks)
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     print(f"torch {torch.__version__}, {args.threads} threads, devices: {devices}")
@@ -101,6 +105,12 @@ def main() -> None:
             ms = best_ms(lambda: detect_faces(frames, detector, min_face_px=min_face), args.repeat) / args.batch
             levels = len(pyramid_scales(1080, 1920, min_face))
             rows.append((label, device, ms, f"{levels} finer levels, found: {bool(det.found[0])}"))
+        wide = load_full_range_detector(device)
+        faces = detect_full_range(frames, wide)
+        ms = best_ms(lambda: detect_full_range(frames, wide), args.repeat) / args.batch
+        hit = [bool(np.all(np.abs((b[:2] + b[2:]) / 2 - (case.face_box[:2] + case.face_box[2:]) / 2) < case.eye))
+               for b in faces[0].boxes]
+        rows.append(("full range, whole frame", device, ms, f"found: {any(hit)}"))
         det = detect_faces(frames, detector, min_face_px=40.0)
         for passes in (0, 3):
             with torch.no_grad():

@@ -28,8 +28,14 @@ rolled 90 deg), then on the frame sharpened (`enhance`; `sharpen`, an unsharp ma
 in sharpened frames until it is lost. On `bench/detect_faces.py --only-check` they read the
 astronaut at a 25 px eye distance blurred by 3 px (1080p and 4K: sharpened), rolled 90 deg with
 noise (turned) and at a 25 px eye distance rolled 90 deg, dark, beside a smaller copy (turned),
-where the detector found nothing or the reads disagreed. A contrast stretch, tried too, read
-wrong faces 2.7 to 4.6 eye distances away on dark and small blurred frames and is not used. No
+where the detector found nothing or the reads disagreed. After the short-range looks of the plain
+frame and again after those of the sharpened one, BlazeFace full range runs on the whole frame
+(`full_range`, `nodes.landmarks.network.detect_full_range`, scores from
+`FULL_RANGE_LOOK_MIN_SCORE`): on the same check it read the astronaut darkened (x0.25) and
+noised (5.7%; failed before), changed no other frame's error (two failures' reason went from no
+face found to presence too low) and read no face on the 18 face-free photos. It is a look, not a
+pyramid level: one call costs about three short-range whole-frame calls and it finds no face under
+a box of about 100 px in 1080p. A contrast stretch, tried too, read wrong faces 2.7 to 4.6 eye distances away on dark and small blurred frames and is not used. No
 face was read on 18 face-free skimage photos, plain, dark, blurred or noisy (0 of 72 frames).
 
 Frames are (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded; pixels as in
@@ -46,12 +52,14 @@ import torch
 
 from .correspondence import MEDIAPIPE_TO_68
 from .iris import iris_landmarks, load_iris_network
-from .network import (PYRAMID_MIN_SCORE, detect_all_faces, eye_roll, face_landmarks, load_face_detector,
-                      load_face_mesh, points_roll, square_box, upright_face_landmarks)
+from .network import (PYRAMID_MIN_SCORE, detect_all_faces, detect_full_range, eye_roll, face_landmarks,
+                      load_face_detector, load_face_mesh, load_full_range_detector, points_roll, square_box,
+                      upright_face_landmarks)
 from .tracking import FAILURE_REASONS, FaceChoice, choose_face, landmark_crop, refind_face
 
 __all__ = ["FAILURE_REASONS", "TrackedFaces", "track_faces", "crop_movement", "predict_crop", "read_disagreement",
-           "sharpen", "SHARPEN_SIGMA_PX", "SHARPEN_AMOUNT", "LOOKS", "unturn_faces"]
+           "sharpen", "SHARPEN_SIGMA_PX", "SHARPEN_AMOUNT", "LOOKS", "unturn_faces",
+           "FULL_RANGE_LOOK_MIN_SCORE"]
 
 
 
@@ -100,12 +108,14 @@ def sharpen(image: torch.Tensor, sigma_px: float = SHARPEN_SIGMA_PX, amount: flo
     return (image + amount * (image - separable_filter(image, kernel))).clamp(0.0, 1.0)
 
 
-LOOKS = ((False, 0), (False, 1), (False, 3), (True, 0), (True, 1), (True, 3))
+LOOKS = ((False, 0, False), (False, 1, False), (False, 3, False), (False, 0, True),
+         (True, 0, False), (True, 1, False), (True, 3, False), (True, 0, True))
 """The detection passes of a frame where no face is confirmed, in order: (sharpened, quarter turns
-counter-clockwise). BlazeFace short range misses a face rolled 90 deg when it is small (the
-astronaut at a 25 px eye distance in 1080p rolled 90 deg: nothing found upright, score 0.90 in
-the frame turned a quarter back). A face found in a turned frame is taken only when its points'
-roll lies within 45 deg of the turn (each look covers its own quadrant of rolls)."""
+counter-clockwise, full range: BlazeFace full range on the whole frame, `detect_full_range`, in
+place of the short-range pyramid). BlazeFace short range misses a face rolled 90 deg when it is
+small (the astronaut at a 25 px eye distance in 1080p rolled 90 deg: nothing found upright, score
+0.90 in the frame turned a quarter back). A face found in a turned frame is taken only when its
+points' roll lies within 45 deg of the turn (each look covers its own quadrant of rolls)."""
 
 
 def unturn_faces(faces, turn: int, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -136,6 +146,11 @@ def unturn_faces(faces, turn: int, size: tuple[int, int]) -> tuple[np.ndarray, n
     return (np.concatenate([corners.min(1), corners.max(1)], -1), back(keypoints),
             np.asarray(faces.scores).reshape(-1))
 
+
+FULL_RANGE_LOOK_MIN_SCORE = 0.4
+"""Least score of a full-range detection in the full-range look (below MediaPipe's 0.5: on the
+acceptance check's frames the astronaut darkened and noised scored 0.41; a detection is taken
+only when the face mesh confirms it, as every look's)."""
 
 ROLL_TRIES = (0.0, np.pi / 4, -np.pi / 4)
 """Turns added to the detector's roll, tried in order until the face mesh finds the face: its eye
@@ -189,7 +204,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 refind_frames: int = 30, reread: float = 0.05, max_rereads: int = 2,
                 velocity: float = 1.0, max_candidates: int = 3,
                 max_disagreement: float = 0.15, roll_passes: int = 3, with_iris: bool = True,
-                enhance: bool = True, quarter_turns: bool = True, progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
+                enhance: bool = True, quarter_turns: bool = True, full_range: bool = True,
+                progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
     """Follow the chosen face through `frames` (see the module docstring).
 
     Args:
@@ -213,6 +229,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
             follow a face found there in sharpened frames.
         quarter_turns: where nothing is confirmed, detect again in the frame turned a quarter
             each way (`LOOKS`), the points read in the frame as it is.
+        full_range: where nothing is confirmed, detect again with BlazeFace full range on the
+            whole frame (`detect_full_range`; plain, then sharpened with `enhance`).
         progress: called with (fraction done, message).
     Returns:
         TrackedFaces.
@@ -223,6 +241,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
     count, height, width = frames.shape[:3]
     detector, mesh = load_face_detector(device), load_face_mesh(device)
     iris_net = load_iris_network(device) if with_iris else None
+    wide = load_full_range_detector(device) if full_range else None
     out = TrackedFaces(np.full((count, 4), np.nan), np.full(count, np.nan), np.full((count, 468, 2), np.nan),
                        np.zeros(count), np.ones(count, bool), np.zeros(count, np.int64), np.zeros(count, bool),
                        np.full((count, 2, 5, 2), np.nan), np.zeros(count, np.int64))
@@ -234,13 +253,17 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
         points, presence = face_landmarks(image, box[None], mesh, np.array([roll]))
         return points[0].double().cpu().numpy(), float(presence[0])
 
-    def detect(image: torch.Tensor, f: int, refind: bool,
-               turn: int = 0) -> tuple[tuple[np.ndarray, float, np.ndarray, float] | None, int]:
-        """Detect (in the frame turned `turn` quarter turns), choose and confirm a face in one
-        frame: ((points, presence, crop, roll) or None, reason)."""
+    def detect(image: torch.Tensor, f: int, refind: bool, turn: int = 0,
+               wide_look: bool = False) -> tuple[tuple[np.ndarray, float, np.ndarray, float] | None, int]:
+        """Detect (in the frame turned `turn` quarter turns; with the full-range detector when
+        `wide_look`), choose and confirm a face in one frame: ((points, presence, crop, roll) or
+        None, reason)."""
         turned = torch.rot90(image, turn, dims=(1, 2)) if turn else image
-        faces = detect_all_faces(turned, detector, min_score=min_score, iou=iou, min_face_px=min_face_px,
-                                 pyramid_min_score=pyramid_min_score)[0]
+        if wide_look:
+            faces = detect_full_range(turned, wide, min_score=FULL_RANGE_LOOK_MIN_SCORE, iou=iou)[0]
+        else:
+            faces = detect_all_faces(turned, detector, min_score=min_score, iou=iou, min_face_px=min_face_px,
+                                     pyramid_min_score=pyramid_min_score)[0]
         boxes, keypoints, scores = unturn_faces(faces, turn, (height, width))
         reason = 3 if refind and len(boxes) else 1
         for _ in range(max_candidates):  # a detection the face mesh rejects: the next one chosen
@@ -302,10 +325,10 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 refind = last_box is not None and lost_for < refind_frames
                 sharpened, found, reason = False, None, 1
                 for look in LOOKS:  # the frame, turned a quarter each way, sharpened: until one is confirmed
-                    if (look[0] and not enhance) or (look[1] and not quarter_turns):
+                    if (look[0] and not enhance) or (look[1] and not quarter_turns) or (look[2] and not full_range):
                         continue
                     image = sharpen(plain) if look[0] else plain
-                    found, look_reason = detect(image, f, refind, look[1])
+                    found, look_reason = detect(image, f, refind, look[1], look[2])
                     if found is not None:
                         sharpened = look[0]
                         break

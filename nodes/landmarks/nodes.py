@@ -299,7 +299,7 @@ class TrackFaces(Node):
     """
 
     type_name = "landmarks.TrackFaces"
-    version = 2
+    version = 3  # 3: the full-range look (`full_range`); 2: the quarter-turned and sharpened looks
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -333,6 +333,12 @@ class TrackFaces(Node):
                                     "copy), detect again in it turned a quarter each way (the short-range "
                                     "detector misses small faces rolled 90 deg); the points are read in the frame "
                                     "as it is. Costs two more detections on frames that fail.")
+        full_range: bool = Param(True, description="Where no face is confirmed in a frame, detect again with "
+                                 "MediaPipe's full-range BlazeFace on the whole frame (192 x 192; it finds faces "
+                                 "from about a 100 px box in 1080p), after the short-range looks and again on the "
+                                 "sharpened frame: it sees some blurred, dark and noisy faces the short-range "
+                                 "pyramid misses. Costs up to two full-range calls (about 4.7 short-range calls "
+                                 "each) on frames that fail.")
 
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the networks).")
     boxes = Out(ParamSequence, doc="x0 y0 x1 y1: the square crop the points were read in, pixels (turned by "
@@ -356,7 +362,8 @@ class TrackFaces(Node):
                           iou=p.iou, min_face_px=p.min_face_px, pyramid_min_score=p.pyramid_min_score,
                           box_scale=p.box_scale, min_presence=p.min_presence, refind_frames=p.refind_frames,
                           reread=p.reread, velocity=p.velocity, roll_passes=p.roll_passes, with_iris=p.with_iris,
-                          enhance=p.enhance, quarter_turns=p.quarter_turns, progress=self.progress)
+                          enhance=p.enhance, quarter_turns=p.quarter_turns, full_range=p.full_range,
+                          progress=self.progress)
         ok = (~out.failed).astype(np.float32)
         confidence = (out.presence * ok).astype(np.float32)[:, None]
         points = out.points.astype(np.float32)
