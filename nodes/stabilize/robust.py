@@ -34,7 +34,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["lower_median", "still_vertices", "RobustAlignment", "weighted_kabsch", "psi_weights", "robust_align", "rest_mode",
+__all__ = ["lower_median", "still_vertices", "RobustAlignment", "weighted_kabsch", "psi_weights", "robust_align",
+           "rest_mode",
            "noise_level", "residual_scale", "apply_transforms", "kabsch_from_moments", "frame_blocks"]
 
 
