@@ -166,16 +166,10 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
          outputs: Iterable[str] | None, force: Iterable[str], mode: str, workers: int | None, device: str,
          started: float) -> RunResult:
     token = new_token()  # names this run's staging folders (see nodegraph.staging)
-    if store is None and scheduler in IN_PROCESS and not outputs:
-        # Without a cache every node runs: start their slow imports now, so that they overlap
-        # planning (the content hash of the input files releases the GIL) instead of following it.
-        early = []
-        for nid in graph.nodes:
-            try:
-                early += graph.node_class(nid).preload
-            except Exception:  # noqa: BLE001 - an unknown type is reported by planning
-                pass
-        preload(early)
+    # Node preloads start after planning, never during it: planning reads the input files'
+    # headers, which imports their readers' C extensions (pxr, OpenImageIO, av) on this thread,
+    # and a preload importing torch at the same time deadlocked (stabilize.json on a USD capture
+    # with --no-cache hung forever: pxr's library initialisers and torch's both waited on the other).
     for attempt in range(2):
         plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
                         force=force, device=device)

@@ -191,3 +191,23 @@ def test_an_absurd_fps_parameter_is_refused_at_validation(tmp_path, capsys, valu
                f"fps={value}", f"output={out}")
     assert "node 'remove', 'fps'" in err and "OverflowError" not in err, err
     assert not out.exists()
+
+
+def test_a_usd_capture_read_while_planning_does_not_deadlock_with_the_node_preloads(tmp_path):
+    """A fresh process (pxr and torch not yet imported) reading a USD capture's header while
+    planning, without a cache: stabilize.json hung forever when stab's preload imported torch
+    in a background thread while planning imported pxr (both waited on the other's lock)."""
+    import os
+    import subprocess
+    import sys
+
+    capture = tmp_path / "capture.usda"
+    capture.write_text("#usda 1.0\n( nonsense")
+    argv = [sys.executable, "-c", "import sys; from nodegraph.cli import main; sys.exit(main())", "run",
+            str(GRAPHS / "stabilize.json"), f"capture={capture}", f"output={tmp_path / 'out.npz'}",
+            f"report={tmp_path / 'report'}", "--no-cache", "--progress", "none"]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=300,
+                          env=os.environ | {"PYTHONPATH": str(GRAPHS.parent)})
+    assert done.returncode == 2, done.stderr
+    assert f"file '{capture}': expected a readable USD stage" in done.stderr
+    assert not (tmp_path / "out.npz").exists() and not (tmp_path / "report").exists()
