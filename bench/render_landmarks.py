@@ -2,7 +2,8 @@
 
 Run: nice python bench/render_landmarks.py [--repeat 5] [--threads 2] [--batch 1]
 
-Rows (median of `--repeat` runs after one warm-up, ms per frame):
+Rows (median of `--repeat` runs after one warm-up, ms per frame; for the renders also the
+process CPU time, all threads, which a busy shared machine inflates less than the wall time):
   render fwd / fwd+bwd   the whole ICT head (48,836 drawn triangles of 52,220: eye shells
                          and lashes hidden) at 256^2 and 512^2, default appearance, antialiased,
                          gradients w.r.t. vertices, albedo and SH (fwd+bwd = forward plus backward)
@@ -17,10 +18,27 @@ CUDA rows appear when a GPU is present.
 from __future__ import annotations
 
 import argparse
+import statistics
+import time
 
 import numpy as np
 import torch
 from _timing import median_ms
+
+
+def wall_and_cpu_ms(fn, repeat: int) -> tuple[float, float]:
+    """Medians of the wall time and of the process CPU time (all threads) of `fn()`, ms, over
+    `repeat` runs after one warm-up (CUDA synchronized)."""
+    fn()
+    walls, cpus = [], []
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+        walls.append((time.perf_counter() - t0) * 1e3)
+        cpus.append((time.process_time() - c0) * 1e3)
+    return statistics.median(walls), statistics.median(cpus)
 
 
 def main() -> None:
@@ -71,28 +89,29 @@ def main() -> None:
                 return out
 
             with torch.no_grad():
-                fwd = median_ms(forward, args.repeat) / b
-            both = median_ms(lambda: forward(True), args.repeat) / b
-            rows.append((f"render {size}^2 fwd", device, fwd))
-            rows.append((f"render {size}^2 fwd+bwd", device, both))
+                fwd, fwd_cpu = wall_and_cpu_ms(forward, args.repeat)
+            both, both_cpu = wall_and_cpu_ms(lambda: forward(True), args.repeat)
+            rows.append((f"render {size}^2 fwd", device, fwd / b, fwd_cpu / b))
+            rows.append((f"render {size}^2 fwd+bwd", device, both / b, both_cpu / b))
 
         photo = torch.as_tensor(astronaut().astype(np.float32) / 255.0, device=device)[None]
         detector, mesh = load_face_detector(device), load_face_mesh(device)
         det = detect_faces(photo, detector)
-        rows.append(("detector 512^2 photo", device, median_ms(lambda: detect_faces(photo, detector), args.repeat)))
+        rows.append(("detector 512^2 photo", device, median_ms(lambda: detect_faces(photo, detector), args.repeat),
+                     None))
         with torch.no_grad():
             rows.append(("face mesh fwd (crop+net)", device,
-                         median_ms(lambda: face_landmarks(photo, det.boxes, mesh), args.repeat)))
+                         median_ms(lambda: face_landmarks(photo, det.boxes, mesh), args.repeat), None))
 
         def mesh_backward():
             x = photo.clone().requires_grad_()
             points, _ = face_landmarks(x, det.boxes, mesh)
             points.sum().backward()
 
-        rows.append(("face mesh fwd+bwd", device, median_ms(mesh_backward, args.repeat)))
-    print(f"{'what':28s} {'device':6s} {'ms/frame':>9s}")
-    for name, device, ms in rows:
-        print(f"{name:28s} {device:6s} {ms:9.1f}")
+        rows.append(("face mesh fwd+bwd", device, median_ms(mesh_backward, args.repeat), None))
+    print(f"{'what':28s} {'device':6s} {'ms/frame':>9s} {'cpu ms':>7s}")
+    for name, device, ms, cpu in rows:
+        print(f"{name:28s} {device:6s} {ms:9.1f} " + ("" if cpu is None else f"{cpu:7.1f}"))
 
     # agreement on renders of the head
     jaw = model.expression_names.index("jawOpen")
