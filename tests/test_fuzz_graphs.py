@@ -213,6 +213,12 @@ def _inputs(folder: Path) -> dict[str, Path]:
     files["garbage_model"].write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{}garbage")
     files["empty_npz"].write_bytes(b"")
     files["a_file"].write_text("a file, not a folder")
+    from nodes.io.livelink import LIVE_LINK_SHAPES
+
+    files["take_csv"] = folder / "take.csv"
+    files["take_csv"].write_text("Timecode," + ",".join(LIVE_LINK_SHAPES) + "\n" + "".join(
+        f"10:00:{f // 30:02d}:{f % 30:02d}.000," + ",".join("0.1" for _ in LIVE_LINK_SHAPES) + "\n"
+        for f in range(34)))  # past a second: the rate (30) is inferred
     return files
 
 
@@ -225,6 +231,14 @@ OUTPUTS = {  # every output parameter of the graph, set to a path under the test
     "dynamics_train": {"model": "out/removal.safetensors", "synthesis_model": "out/synthesis.safetensors"},
     "dynamics_train_captures": {"model": "out/removal.safetensors",
                                 "synthesis_model": "out/synthesis.safetensors", "report": "out/report.json"},
+    "stabilize": {"output": "out/stab.npz", "report": "out/report"},
+    "livelink_to_render": {"images": "out/render.%04d.png"},
+    "synthetic_capture": {"capture": "out/c.npz", "truth": "out/t.npz", "truth_rigid": "out/r.npz",
+                          "expressions": "out/e.json", "report": "out/report"},
+    "video_to_animation": {"output": "out/fit.npz", "report": "out/fit", "motion_report": "out/motion",
+                           "csv": "out/a.csv", "usd": "out/a.usd", "gltf": "out/a.glb"},
+    "demo": {"html": "out/index.html", "report": "out/stab", "dynamics_report": "out/dyn", "fit_report": "out/fit",
+             "motion_report": "out/motion"},
 }
 GOOD = {  # good inputs, by name in `_inputs`
     "landmarks": {"images": "plates"},
@@ -234,6 +248,11 @@ GOOD = {  # good inputs, by name in `_inputs`
     "dynamics_retarget": {"removal_model": "model_file", "synthesis_model": "model_file"},
     "dynamics_train": {},
     "dynamics_train_captures": {"captures": "takes", "neutral": "face_capture"},
+    "stabilize": {"capture": "capture"},
+    "livelink_to_render": {"csv": "take_csv"},
+    "synthetic_capture": {},
+    "video_to_animation": {"images": "plates", "camera": ""},
+    "demo": {},
 }
 # (graph, parameter, value (an `_inputs` name, "@name" for that file's path as an output, or a
 # literal), the node the error names)
@@ -289,6 +308,27 @@ BAD_VALUES = [
     ("dynamics_train_captures", "model", "out/removal.txt", "save"),
     ("dynamics_train_captures", "model", "@face_capture", "save"),
     ("dynamics_train_captures", "report", "out/report.npz", "report"),
+    ("stabilize", "capture", "garbage_npz", "load"),
+    ("stabilize", "capture", "folder", "load"),
+    ("stabilize", "output", "@capture", "save"),
+    ("stabilize", "output", "out/stab.txt", "save"),
+    ("stabilize", "report", "@a_file", "report"),
+    ("stabilize", "group", "no_such_group", "stab"),
+    ("livelink_to_render", "csv", "a_file", "csv"),
+    ("livelink_to_render", "csv", "missing.csv", "csv"),
+    ("livelink_to_render", "fps", "-1", "csv"),
+    ("livelink_to_render", "distance_cm", "0", "csv"),
+    ("livelink_to_render", "images", "out/render.%04d.txt", "save"),
+    ("synthetic_capture", "num_frames", "0", "performance"),
+    ("synthetic_capture", "capture", "out/c.txt", "save_capture"),
+    ("synthetic_capture", "truth_rigid", "out/r.obj", "save_rigid"),
+    ("video_to_animation", "csv", "out/a.txt", "csv"),
+    ("video_to_animation", "usd", "out/a.obj", "usd"),
+    ("video_to_animation", "gltf", "out/a.gltf", "gltf"),
+    ("video_to_animation", "output", "@garbage_png", "save"),
+    ("demo", "num_frames", "-5", "performance"),
+    ("demo", "html", "out/index.txt", "html"),
+    ("demo", "report", "@a_file", "report"),
 ]
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Literal, get_args
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import FRAMEWISE, Files, ImageSequence, In, InputError, Node, NodeParams, Out, Param
 
@@ -378,6 +379,16 @@ class SaveImageSequence(Node):
         colour_space: ColourSpaceChoice = Param("auto", description="Colour space of the files: "
                                                 "auto (float/half linear, integer srgb), linear "
                                                 "or srgb; the images are converted to it.")
+
+        @field_validator("path")
+        @classmethod
+        def _pattern(cls, value: str) -> str:  # refused at validation, not after the frames were made
+            if Path(value).suffix.lower() not in IMAGE_WRITE_FORMATS:
+                raise ValueError(f"expected a numbered pattern ending in {', '.join(IMAGE_WRITE_FORMATS)}, "
+                                 f"found '{value}'")
+            if frame_token(value) is None:
+                raise ValueError(f"expected a numbered pattern such as 'img.%04d.exr', found '{value}'")
+            return value
 
     images = In(ImageSequence, doc="The frames to write (converted to the files' colour space).")
     files = Out(Files, doc="Paths written by this chunk and their sha256.")

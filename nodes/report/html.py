@@ -28,8 +28,10 @@ import time
 from pathlib import Path
 from urllib.parse import quote
 
+from pydantic import field_validator
+
 from nodegraph import SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param, Table
-from nodegraph.files import files_value, write_text_atomic
+from nodegraph.files import check_output_suffix, files_value, write_text_atomic
 
 __all__ = ["Html", "html_page", "markdown_html", "relative_href"]
 
@@ -193,6 +195,11 @@ class Html(Node):
         graph: str = Param("", input_file=True, description="Graph JSON file to draw ('' = none); relative paths "
                            "in a graph file resolve against its folder.")
         run_page: str = Param("", description="Link to the run page (`nodegraph run --report-html`), '' = none.")
+
+        @field_validator("path")
+        @classmethod
+        def _suffix(cls, value: str) -> str:  # refused at validation, not after the whole pipeline ran
+            return check_output_suffix(value, (".html", ".htm"))
 
     figures = In(Files, many=True, optional=True,
                  doc="Files of report nodes: PNGs embedded, .md rendered, every file linked.")

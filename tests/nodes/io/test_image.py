@@ -168,8 +168,11 @@ def test_error_no_pattern_and_no_files(tmp_path):
 
 
 def test_error_bad_save_choices(tmp_path):
-    with pytest.raises(NodeError, match=r"'path'.*found '\.bmp'"):
+    with pytest.raises(NodeError, match=r"invalid parameters: 'path': expected a numbered pattern ending in "
+                                        r"\.exr, .*found '.*a\.%04d\.bmp'"):  # at validation
         save(make_images(1), str(tmp_path / "a.%04d.bmp"))
+    with pytest.raises(NodeError, match=r"'path': expected a numbered pattern such as 'img\.%04d\.exr'"):
+        save(make_images(1), str(tmp_path / "a.png"))
     with pytest.raises(NodeError, match=r"'bit_depth'.*\['float', 'half'\] for EXR.*found 'uint8'"):
         save(make_images(1), str(tmp_path / "a.%04d.exr"), bit_depth="uint8")
     with pytest.raises(NodeError, match=r"'images'.*1 or 3 channels for JPEG.*found 4"):
