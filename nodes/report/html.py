@@ -2,7 +2,8 @@
 
 The page embeds every PNG of the connected `Files` (base64 data URIs), renders their markdown
 files as HTML (`markdown_html`: headings, paragraphs, pipe tables), links their other files,
-and shows every connected `Table` as an HTML table, one section per connection, and draws the
+and shows every connected `Table` as an HTML table (a markdown table with the same columns
+is not shown a second time), one section per connection, and draws the
 graph the results came from (when `graph` names its JSON file), each node coloured by what it
 did in this run. Nothing is loaded from the network. Every file is named by a link relative to
 the page's folder (`relative_href`), so the folder can be moved or served as it is.
@@ -26,6 +27,7 @@ import os
 import re
 import time
 from pathlib import Path
+from typing import Mapping
 from urllib.parse import quote
 
 from pydantic import field_validator
@@ -80,11 +82,13 @@ def _row_cells(line: str) -> list[str]:
     return [c.strip() for c in line.strip().strip("|").split("|")]
 
 
-def markdown_html(text: str) -> str:
+def markdown_html(text: str, shown: Mapping[tuple[str, ...], str] | None = None) -> str:
     """Render the markdown that reports write as HTML: `#` headings, pipe tables, paragraphs.
 
     A table is a row of cells, a rule (`|---|---|`) and its rows; other lines join into
     paragraphs split by blank lines. All text is escaped (no inline markup, no raw HTML).
+    A table whose header row is a key of `shown` (the columns of a `Table` the page shows
+    itself) is replaced by a line naming that section, so that the page shows it once.
 
     Example:
         >>> markdown_html("| a | b |\\n|---|---|\\n| 1 | 2 |\\n")
@@ -115,7 +119,11 @@ def markdown_html(text: str) -> str:
             while i < len(lines) and "|" in lines[i]:
                 rows.append(_row_cells(lines[i]))
                 i += 1
-            parts.append(_grid_html(_row_cells(line), rows))
+            header = _row_cells(line)
+            if shown and tuple(header) in shown:
+                parts.append(f"<p>(this table is the section '{html.escape(shown[tuple(header)])}' below)</p>")
+            else:
+                parts.append(_grid_html(header, rows))
         elif line:
             paragraph.append(line)
         else:
@@ -124,7 +132,7 @@ def markdown_html(text: str) -> str:
     return "\n".join(parts)
 
 
-def _files_html(paths: list[str], page: str) -> str:
+def _files_html(paths: list[str], page: str, shown: Mapping[tuple[str, ...], str] | None = None) -> str:
     parts = []
     for path in paths:
         p = Path(path)
@@ -133,7 +141,7 @@ def _files_html(paths: list[str], page: str) -> str:
             parts.append(f'<figure><img alt="{html.escape(p.name)}" src="data:image/png;base64,{data}">'
                          f"<figcaption>{_link(p, page)}</figcaption></figure>")
         elif p.suffix.lower() == ".md":
-            parts.append(f"<h4>{_link(p, page)}</h4>\n{markdown_html(p.read_text())}")
+            parts.append(f"<h4>{_link(p, page)}</h4>\n{markdown_html(p.read_text(), shown)}")
         else:
             parts.append(f"<p>also written: {_link(p, page)}</p>")
     return "\n".join(parts)
@@ -180,7 +188,8 @@ class Html(Node):
     """A self-contained HTML page of the results: figures, tables and the graph drawn."""
 
     type_name = "report.Html"
-    version = 2  # v2: markdown rendered (was raw text), files linked relative to the page (were absolute)
+    version = 3  # v2: markdown rendered (was raw text), files linked relative to the page (were absolute);
+    # v3: a markdown table that is also a connected Table is shown once (the Table's section)
     kind = SEQUENCE
     writes_files = True
     cacheable = False  # it shows the run (uses_run_log): written again by every run
@@ -214,15 +223,16 @@ class Html(Node):
         if not p.path.lower().endswith((".html", ".htm")):
             raise InputError("path", f"expected a file name ending in .html, found '{p.path}'")
         sections = []
+        titles = [p.table_titles[i] if i < len(p.table_titles) else f"table {i + 1}" for i in range(len(tables))]
+        shown = {tuple(str(c) for c in table.columns): title for table, title in zip(tables, titles)}
         for i, files in enumerate(figures):
             name = p.sections[i] if i < len(p.sections) else f"figures {i + 1}"
             missing = [f for f in files.paths if not Path(f).is_file()]
             if missing:
                 raise InputError("figures", f"connection {i} ('{name}'): expected written files, found missing "
                                             f"{missing[:3]}")
-            sections.append((name, _files_html(list(files.paths), p.path)))
-        for i, table in enumerate(tables):
-            name = p.table_titles[i] if i < len(p.table_titles) else f"table {i + 1}"
+            sections.append((name, _files_html(list(files.paths), p.path, shown)))
+        for table, name in zip(tables, titles):
             sections.append((name, _table_html(table)))
         svg = ""
         types: dict[str, str] = {}

@@ -104,3 +104,18 @@ def test_html_page_links_relative_paths_given_from_the_working_folder(tmp_path, 
     assert sorted(_hrefs(text)) == ["../report/errors.json", "../report/errors.md", "../report/head%20motion.png"]
     assert relative_href("out/report/errors.md", "out/pages/index.html") == "../report/errors.md"
     assert relative_href(tmp_path / "a" / "b.md", tmp_path / "page.html") == "a/b.md"
+
+
+def test_a_markdown_table_that_is_also_a_connected_table_is_shown_once(tmp_path):
+    table = Table(["method", "median_cm"], [["procrustes", 0.2257], ["mode_pursuit", 0.0173]])
+    (tmp_path / "report").mkdir()
+    md = write_table(tmp_path / "report", "errors", table)[0]  # errors.md, as the reports write it
+    other = tmp_path / "report" / "other.md"
+    other.write_text("| series | value |\n|---|---|\n| raw | 1.5 |\n")
+    page = tmp_path / "index.html"
+    run_node(Html, {"path": str(page), "table_titles": ["stabilization errors"]},
+             figures=[files_value([str(md), str(other)])], tables=[table])
+    text = page.read_text()
+    assert text.count("<td>procrustes</td>") == 1 and text.count("<td>mode_pursuit</td>") == 1
+    assert "(this table is the section 'stabilization errors' below)" in text
+    assert "<td>raw</td>" in text  # a markdown table without a connected twin is still rendered
