@@ -57,6 +57,7 @@ def main() -> None:
                     "first identity (as the graphs: 2)")
     ap.add_argument("--identity-points", type=int, default=468, choices=[68, 468],
                     help="landmarks the identity is estimated from (as graphs/fit_video.json: 468, the 68 then 400 more face-mesh points)")
+    ap.add_argument("--iris", action="store_true", help="the iris centres into fit.Expression (eyeLook weights)")
     args = ap.parse_args()
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
@@ -120,6 +121,8 @@ def main() -> None:
     rigid = run_node(RigidPose, fit_params, frames=range(f), model=fitted, **common)
     times["rigid"] = (time.perf_counter() - t) / f
     t = time.perf_counter()
+    if args.iris:
+        common = dict(common, iris=[lm_out["iris"]])
     expr = run_node(Expression, fit_params, frames=range(f), model=fitted, pose=rigid["pose"], **common)
     times["expression"] = (time.perf_counter() - t) / f
     print(f"CPU (no GPU), {f} frames of {args.size}x{args.size}:")
@@ -145,6 +148,25 @@ def main() -> None:
     for name, e in (("rotation deg", rot), ("x cm", dt[:, 0]), ("y cm", dt[:, 1]), ("depth cm", dt[:, 2]),
                     ("jawOpen", jaw)):
         print(f"  {name:14s} {np.median(e):6.3f} / {np.percentile(e, 90):6.3f}")
+    from nodes.fit.energy import eye_look_shapes
+    from nodes.fit.output_nodes import projected_landmarks68
+    from nodes.geometry.camera import project_points
+    from nodes.landmarks.correspondence import inter_ocular_distance
+
+    eyes = eye_look_shapes(list(model.expression_names))
+    eye_err = np.abs(v[ok][:, [12 + i for i in eyes]] - truth["weights"][ok][:, eyes])
+    print(f"  {'eyeLook (8)':14s} {np.median(eye_err):6.3f} / {np.percentile(eye_err, 90):6.3f}"
+          f"  (truth's largest {np.abs(truth['weights'][:, eyes]).max():.3f})")
+    true_local = model.evaluate(truth["weights"], truth["identity"])[:, model.landmarks]
+    true68 = project_points(true_local @ np.swapaxes(truth["rotation"], 1, 2) + truth["translation"][:, None],
+                            cam.world_to_camera, np.array([cam.fx, cam.fy, cam.cx, cam.cy]))[ok]
+    fit68 = projected_landmarks68(v, fitted, cam).pixels[ok]
+    net68 = marks.points[ok]
+    iod = np.array([inter_ocular_distance(p) for p in true68])
+    for name, a, b in (("fit - network", fit68, net68), ("fit - truth", fit68, true68),
+                       ("network - truth", net68, true68)):
+        e = np.linalg.norm(a - b, axis=-1).mean(1) / iod * 100
+        print(f"  68 points {name:16s} {np.median(e):6.2f} / {np.percentile(e, 90):6.2f} % of the eye distance")
 
 
 if __name__ == "__main__":
