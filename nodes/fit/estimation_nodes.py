@@ -70,7 +70,7 @@ class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
     type_name = "fit.EstimateAppearance"
-    version = 7  # 7: the photometric term reads the plate bicubically, anchors on the containing triangle
+    version = 6
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -221,7 +221,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 7  # 7: bicubic photometric reads, anchors on the containing triangle; 6: LM in float64
+    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = SEQUENCE
     resources = {"gpu": 1}
 

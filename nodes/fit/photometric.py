@@ -5,7 +5,7 @@ After a render of the current estimate (`nodes.fit.views.render_crops`), every `
 covered pixel of each view's crop becomes a *sample*: the surface point under it (triangle +
 barycentrics, like a landmark anchor) and the render's colour there. While the pose and the
 shapes move, the sample's surface point moves with them and the plate's crop is read where
-it projects (bicubically, `sample_bicubic`; both images blurred by the same Gaussian):
+it projects (bilinearly, both images blurred by the same Gaussian):
 
     E_p = w_p * (1 / N_c) sum_i rho_i |P(pi_c(x_i(theta))) - c_i|^2 / sigma_0^2
 
@@ -28,64 +28,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ..geometry.image import gaussian_blur, image_to_crop
+from ..geometry.image import gaussian_blur, image_to_crop, sample_bilinear
 from .energy import _skew, axis_angle_to_rotmat, project_views, project_views_jacobian
 from .views import FitModel, FitViews, _barycentrics, at_anchors
 
-__all__ = ["PHOTO_UNIT", "PhotoSamples", "sample_bicubic", "photometric_samples",
+__all__ = ["PHOTO_UNIT", "PhotoSamples", "photometric_samples",
            "photometric_residuals", "photometric_point_jacobian", "PhotoTerm"]
 
 PHOTO_UNIT = 0.01
 """sigma_0: photometric residuals are measured in units of 0.01 (linear colour)."""
-
-
-def _keys_weights(t: Tensor) -> tuple[Tensor, Tensor]:
-    """Keys' cubic convolution weights (a = -0.5) of the taps at -1, 0, 1, 2 for fractions t (...,),
-    and their derivatives in t: (..., 4) each."""
-    t2, t3 = t * t, t * t * t
-    w = torch.stack([-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t,
-                     0.5 * t3 - 0.5 * t2], -1)
-    d = torch.stack([-1.5 * t2 + 2.0 * t - 0.5, 4.5 * t2 - 5.0 * t, -4.5 * t2 + 4.0 * t + 0.5, 1.5 * t2 - t], -1)
-    return w, d
-
-
-def sample_bicubic(images: Tensor, xy: Tensor, *, gradient: bool = False) -> Tensor | tuple[Tensor, Tensor]:
-    """Bicubic samples (Keys 1981, a = -0.5) of images at pixel coordinates (centres at integers).
-
-    The photometric term reads the plate here. Unlike bilinear samples, whose derivative jumps
-    at every pixel boundary, these are continuously differentiable in xy, so the term's energy
-    is smooth and the Levenberg-Marquardt solve converges to its minimum; with bilinear samples
-    the Jacobian disagreed with the energy by 1-8 % in rotation on a 4-frame identity solve (a
-    kink every few 1e-5 px of motion among ~4600 samples) and the solve stalled where a last-bit
-    change of its input decided (issue 30). Exact at pixel centres; edges replicated.
-
-    Args:
-        images: (N, H, W, C); xy: (N, L, 2) x, y pixel coordinates (clamped into the image).
-        gradient: also return the samples' derivative in x and y (0 where clamped).
-    Returns:
-        (N, L, C), and with `gradient` (N, L, C, 2) per pixel.
-    """
-    n, h, w, c = images.shape
-    x = xy[..., 0].clamp(0.0, w - 1.0)
-    y = xy[..., 1].clamp(0.0, h - 1.0)
-    x0, y0 = torch.floor(x), torch.floor(y)
-    wx, dx = _keys_weights(x - x0)
-    wy, dy = _keys_weights(y - y0)
-    taps = torch.arange(-1, 3, device=xy.device)
-    xi = (x0.long()[..., None] + taps).clamp(0, w - 1)  # (N, L, 4)
-    yi = (y0.long()[..., None] + taps).clamp(0, h - 1)
-    index = (yi[..., :, None] * w + xi[..., None, :]).reshape(n, -1)  # (N, L * 16)
-    near = torch.gather(images.reshape(n, h * w, c), 1, index[..., None].expand(n, index.shape[1], c))
-    near = near.reshape(*xy.shape[:-1], 4, 4, c)
-    wx, dx, wy, dy = (v.to(images.dtype) for v in (wx, dx, wy, dy))
-    value = torch.einsum("nlyxc,nly,nlx->nlc", near, wy, wx)
-    if not gradient:
-        return value
-    inside_x = ((xy[..., 0] >= 0) & (xy[..., 0] <= w - 1)).to(images.dtype)[..., None]
-    inside_y = ((xy[..., 1] >= 0) & (xy[..., 1] <= h - 1)).to(images.dtype)[..., None]
-    d_x = torch.einsum("nlyxc,nly,nlx->nlc", near, wy, dx) * inside_x
-    d_y = torch.einsum("nlyxc,nly,nlx->nlc", near, dy, wx) * inside_y
-    return value, torch.stack([d_x, d_y], -1)
 
 
 class PhotoSamples(NamedTuple):
@@ -156,7 +107,7 @@ def photometric_samples(model: FitModel, views: FitViews, image: Tensor, triangl
     colour = blurred.reshape(n, s * s, 3).gather(1, order[..., None].expand(n, m, 3))
     plates = gaussian_blur(views.plates.reshape(n, s, s, 3).to(dt), sigma)
     # Huber weights from the residual at the start of the round (the anchors' own projection)
-    resid = (sample_bicubic(plates, (bary[..., None] * corners).sum(-2)) - colour).norm(dim=-1)
+    resid = (sample_bilinear(plates, (bary[..., None] * corners).sum(-2)) - colour).norm(dim=-1)
     med = torch.where(valid, resid, torch.full_like(resid, float("nan"))).nanmedian(1).values.nan_to_num(1.0)
     thresh = (huber * 1.4826 * med).clamp_min(1e-3)[:, None]
     rho = torch.where(resid <= thresh, torch.ones_like(resid), thresh / resid.clamp_min(1e-9))
@@ -177,7 +128,7 @@ def photometric_residuals(samples: PhotoSamples, points: Tensor, views: FitViews
     """
     b, c, m = samples.weight.shape
     crop = image_to_crop(points, views.boxes, samples.size).reshape(b * c, m, 2)
-    seen = sample_bicubic(samples.plates, crop).reshape(b, c, m, 3)
+    seen = sample_bilinear(samples.plates, crop).reshape(b, c, m, 3)
     r = (seen - samples.colour) / PHOTO_UNIT
     return (r * (samples.weight * float(weight))[..., None].sqrt()).flatten(1)
 
@@ -187,7 +138,7 @@ def photometric_point_jacobian(samples: PhotoSamples, world: Tensor, views: FitV
     """Residuals and their derivatives with respect to each sample's world point.
 
     A sample's residual depends on its own point only: its 3 x 3 Jacobian is the plate's
-    bicubic gradient (`sample_bicubic(gradient=True)`) times the crop's scale times the
+    bilinear gradient (`sample_bilinear(gradient=True)`) times the crop's scale times the
     projection's derivative (`project_views_jacobian`), chained by hand; a caller chains it
     with the points' derivatives in its unknowns (a matrix product per sample).
 
@@ -201,7 +152,7 @@ def photometric_point_jacobian(samples: PhotoSamples, world: Tensor, views: FitV
     pix, d_pix = project_views_jacobian(world, views.world_to_camera, views.intrinsics, views.distortion)
     crop = image_to_crop(pix, views.boxes, samples.size)
     k = ((views.boxes[..., 2] - views.boxes[..., 0]) / samples.size)[..., None, None, None]  # crop px per px
-    seen, grad = sample_bicubic(samples.plates, crop.reshape(b * c, m, 2), gradient=True)
+    seen, grad = sample_bilinear(samples.plates, crop.reshape(b * c, m, 2), gradient=True)
     scale = (samples.weight * float(weight)).sqrt()[..., None] / PHOTO_UNIT  # (B, C, N, 1)
     r = (seen.reshape(b, c, m, 3) - samples.colour) * scale
     jac = grad.reshape(b, c, m, 3, 2) @ (d_pix / k)  # (B, C, N, 3, 3)

@@ -118,7 +118,7 @@ class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 7  # 7: bicubic photometric reads, containing-triangle anchors; 6: LM in float64
+    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _FitParams
@@ -164,7 +164,7 @@ class Expression(Node):
     the eyeLook weights from the plate's iris centres when `iris` is connected."""
 
     type_name = "fit.Expression"
-    version = 8  # 8: bicubic photometric reads, containing-triangle anchors; 7: eyeLook from the iris
+    version = 7  # 7: eyeLook weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     Params = _ExpressionParams

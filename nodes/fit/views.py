@@ -268,41 +268,6 @@ def landmark_anchors(model: FitModel, b: int, c: int, points: int = 68) -> Ancho
                    torch.zeros(b, c, points, 2, device=dev), torch.zeros(b, c, dtype=torch.bool, device=dev))
 
 
-def _containing_triangles(triangle: Tensor, pix: Tensor, points: Tensor, faces: Tensor,
-                          window: int = 2) -> tuple[Tensor, Tensor]:
-    """The visible triangle whose projection contains each point, among the triangles under the
-    (2 window + 1)^2 pixels around it.
-
-    Args:
-        triangle: (N, S, S) visible triangle per pixel (-1 none); pix: (N, V, 2) projected
-            vertices, render pixels; points: (N, L, 2) render pixels; faces: (T, 3).
-    Returns:
-        (N, L) bool, a containing triangle was found; (N, L) its id (the most inside
-        candidate's: the largest smallest barycentric, so the choice changes only on a shared
-        edge or corner, where the candidates give the same surface point).
-    """
-    n, s = triangle.shape[:2]
-    dev = pix.device
-    d = torch.arange(-window, window + 1, device=dev)
-    dy, dx = torch.meshgrid(d, d, indexing="ij")
-    ij = points.round().long()  # (N, L, 2) x, y
-    xx = (ij[..., :1] + dx.reshape(1, 1, -1)).clamp(0, s - 1)
-    yy = (ij[..., 1:] + dy.reshape(1, 1, -1)).clamp(0, s - 1)
-    rows = torch.arange(n, device=dev)[:, None, None]
-    candidates = triangle[rows, yy, xx]  # (N, L, K)
-    corners = pix[rows[..., None], faces[candidates.clamp_min(0)]]  # (N, L, K, 3, 2)
-    p0, p1, p2 = corners.unbind(-2)
-    v0, v1, v2 = p1 - p0, p2 - p0, points[:, :, None] - p0
-    den = v0[..., 0] * v1[..., 1] - v1[..., 0] * v0[..., 1]
-    den = torch.where(den.abs() < 1e-9, torch.full_like(den, 1e-9), den)
-    l1 = (v2[..., 0] * v1[..., 1] - v1[..., 0] * v2[..., 1]) / den
-    l2 = (v0[..., 0] * v2[..., 1] - v2[..., 0] * v0[..., 1]) / den
-    score = torch.stack([1.0 - l1 - l2, l1, l2], -1).min(-1).values
-    score = torch.where(candidates >= 0, score, torch.full_like(score, -float("inf")))
-    best = score.argmax(-1, keepdim=True)
-    return score.gather(-1, best)[..., 0] > -1e-6, candidates.gather(-1, best)[..., 0]
-
-
 def _barycentrics(corners: Tensor, points: Tensor) -> Tensor:
     """(..., 3, 2), (..., 2) -> (..., 3) barycentrics clamped into the triangle (sum 1)."""
     p0, p1, p2 = corners.unbind(-2)
@@ -319,14 +284,9 @@ def anchors_from_render(model: FitModel, views: FitViews, triangle: Tensor, pix:
                         presence: Tensor, fallback: Anchors, *, min_presence: float = 0.5) -> Anchors:
     """Tie the network's points on the render to the surface under them.
 
-    For render point i of a view: the visible triangle whose projection contains the point
-    (`_containing_triangles`: among those under the pixels within 2 of it), else the triangle
-    under the nearest covered pixel; the barycentrics of the point in that triangle's
-    projection (clamped into it), and the offset between the point and the anchor's projection.
-    The containing triangle makes the anchor a continuous function of the point and the pose
-    (neighbouring triangles share the edge the point crosses); the pixel's triangle flipped
-    where the point crossed a pixel boundary, and the fit's answer jumped with the last bits
-    of its input (issue 30).
+    For render point i of a view: the triangle under the nearest covered pixel (the point
+    itself when covered), the barycentrics of the point in that triangle's projection
+    (clamped into it), and the offset between the point and the anchor's projection.
 
     Args:
         model, views: as in `render_crops`.
@@ -355,10 +315,8 @@ def anchors_from_render(model: FitModel, views: FitViews, triangle: Tensor, pix:
             tri_ids[m] = grid[yy, xx]
         else:
             tri_ids[m] = -1
-    faces = torch.as_tensor(model.faces, device=pix.device)
-    inside, inside_ids = _containing_triangles(triangle, pix.detach(), pts, faces)
-    tri_ids = np.where(inside.cpu().numpy(), inside_ids.cpu().numpy(), tri_ids)
     ok_tri = tri_ids >= 0
+    faces = torch.as_tensor(model.faces, device=pix.device)
     corner_ids = faces[torch.as_tensor(np.where(ok_tri, tri_ids, 0), device=pix.device)]  # (N, L, 3)
     rows = torch.arange(n, device=pix.device)[:, None, None]
     corners = pix.detach()[rows, corner_ids]  # (N, L, 3, 2)
