@@ -47,6 +47,11 @@ def _check_rigid_matrix(where: str, name: str, matrix: np.ndarray) -> None:
         fail(where, f"'{name}' bottom row must be [0, 0, 0, 1], found {matrix[3].tolist()}")
 
 
+MAX_FOCAL_IMAGE_SIZES = 1000.0
+"""Largest focal length a Camera accepts, in multiples of its larger image side (a field of view
+of 0.057 deg): beyond it a focal length is a unit error (mm or m read as pixels), not a lens."""
+
+
 @dataclass(eq=False)
 class Camera(PortType):
     """A calibrated pinhole camera with radial distortion (a static value, no frame axis).
@@ -121,6 +126,10 @@ class Camera(PortType):
         for key in ("fx", "fy"):
             if getattr(self, key) <= 0:
                 fail(where, f"'{key}' must be > 0 (pixels), found {getattr(self, key)!r}")
+            # a field of view under 0.06 deg (an 800 mm lens on a 36 mm-wide 4K sensor is 22x)
+            if getattr(self, key) > MAX_FOCAL_IMAGE_SIZES * max(self.width, self.height):
+                fail(where, f"'{key}' must be at most {MAX_FOCAL_IMAGE_SIZES:g} x the image size "
+                            f"({max(self.width, self.height)} px), found {getattr(self, key)!r}")
         _check_rigid_matrix(where, "world_to_camera", self.world_to_camera)
         if self.world_to_camera.dtype != np.float64:
             fail(where, f"'world_to_camera' must be float64, found {self.world_to_camera.dtype}")

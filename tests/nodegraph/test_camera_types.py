@@ -146,3 +146,11 @@ def test_rig_errors(rng):
     rig = CameraRig.from_cameras([_camera(rng, "a")])
     with pytest.raises(KeyError, match=r"unknown camera 'z'; known: \['a'\]"):
         rig.camera("z")
+
+
+@pytest.mark.parametrize("key", ["fx", "fy"])
+def test_a_focal_length_beyond_1000_image_sizes_is_refused(key):
+    good = dict(fx=110.0, fy=110.0, cx=40.0, cy=32.0, width=80, height=64)
+    Camera(**good | {key: 80_000.0}).validate()  # 1000 x 80 px: a 0.057 deg field of view, still a lens
+    with pytest.raises(ValueError, match=rf"'{key}' must be at most 1000 x the image size \(80 px\), found 1e\+20"):
+        Camera(**good | {key: 1e20}).validate()
