@@ -43,6 +43,12 @@ class LiveLinkTake:
     found: list[str]
 
 
+MAX_CURVE_VALUE = 100.0
+"""Largest |value| of a shape column read (ARKit weights are 0..1; beyond 100 is not a take)."""
+MAX_ANGLE_VALUE = 1e4
+"""Largest |value| of an angle column read, in the file's unit (quarter turns: far beyond any head turn)."""
+
+
 def read_live_link_csv(path: str | os.PathLike) -> LiveLinkTake:
     """Parse a Live Link Face CSV.
 
@@ -86,6 +92,12 @@ def read_live_link_csv(path: str | os.PathLike) -> LiveLinkTake:
     if not np.isfinite(arkit).all() or not np.isfinite(angle).all():
         r = int(np.flatnonzero(~np.isfinite(np.concatenate([arkit, angle], 1)).all(1))[0])
         raise ValueError(f"{path}: row {r + 2} has a non-finite value")
+    for values, indices, bound in ((arkit, shapes, MAX_CURVE_VALUE), (angle, angles, MAX_ANGLE_VALUE)):
+        far = np.abs(values) > bound
+        if far.any():
+            r, j = (int(x) for x in np.argwhere(far)[0])
+            raise ValueError(f"{path}: row {r + 2}, column '{rows[0][indices[j]]}': expected a value within "
+                             f"+-{bound:g}, found {values[r, j]:g}")
     seconds = np.full(f, np.nan)
     frames_in_second = np.full(f, np.nan)
     if "timecode" in column:

@@ -4,6 +4,8 @@ angles against scipy, and reading takes written as the app writes them."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -172,3 +174,15 @@ def test_load_live_link_csv_refuses_bad_files_naming_the_place(tmp_path, text, m
     path.write_text(text)
     with pytest.raises(NodeError, match=match):
         run_node(LoadLiveLinkCSV, {"path": str(path), "fps": 30.0})
+
+
+@pytest.mark.parametrize("cell, shown", [("1e300", "found 1e+300"), ("-250", "found -250")])
+def test_a_curve_value_far_outside_its_range_is_refused_naming_row_and_column(tmp_path, cell, shown):
+    path = tmp_path / "take.csv"
+    rows = [",".join(["Timecode", *LIVE_LINK_SHAPES])]
+    rows += [",".join([f"10:00:00:{f:02d}.000", *("0.1" for _ in LIVE_LINK_SHAPES)]) for f in range(3)]
+    rows[2] = rows[2].replace(",0.1", f",{cell}", 1)
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.raises(ValueError, match=rf"row 3, column '{LIVE_LINK_SHAPES[0]}': expected a value within "
+                                         rf"\+-100, {re.escape(shown)}"):
+        read_live_link_csv(path)
