@@ -222,17 +222,17 @@ def make_inputs(folder: Path) -> dict:
     # Live Link CSVs
     header = ["Timecode", "BlendShapeCount", *LIVE_LINK_SHAPES, *LIVE_LINK_ANGLES]
     rows = [",".join(header)]
-    for f in range(6):
-        rows.append(",".join([f"10:00:00:{f:02d}.000", "61", *(f"{0.1 * (f % 3):.3f}" for _ in LIVE_LINK_SHAPES),
+    for f in range(6):  # 10 frames apart: the rows pass a second, so the rate is inferred
+        rows.append(",".join([f"10:00:{10 * f // 30:02d}:{10 * f % 30:02d}.000", "61", *(f"{0.1 * (f % 3):.3f}" for _ in LIVE_LINK_SHAPES),
                               *("0.05" for _ in LIVE_LINK_ANGLES)]))
     (folder / "take.csv").write_text("\n".join(rows) + "\n")
-    (folder / "take_nan.csv").write_text("\n".join(rows[:3] + [rows[3].replace("0.100", "nan", 1)] + rows[4:]))
-    (folder / "take_text.csv").write_text("\n".join(rows[:3] + [rows[3].replace("0.100", "abc", 1)] + rows[4:]))
+    (folder / "take_nan.csv").write_text("\n".join(rows[:2] + [rows[2].replace("0.100", "nan", 1)] + rows[3:]))
+    (folder / "take_text.csv").write_text("\n".join(rows[:2] + [rows[2].replace("0.100", "abc", 1)] + rows[3:]))
     (folder / "take_header.csv").write_text(rows[0] + "\n")
     (folder / "take_empty.csv").write_text("")
     (folder / "take_other.csv").write_text("a,b,c\n1,2,3\n")
     (folder / "take_binary.csv").write_bytes(b"\xff\xfe\x00garbage\x00")
-    (folder / "take_timecode.csv").write_text("\n".join(rows[:2] + [rows[2].replace("10:00:00:01", "xx:yy", 1)]
+    (folder / "take_timecode.csv").write_text("\n".join(rows[:2] + [rows[2].replace("10:00:00:10", "xx:yy", 1)]
                                                         + rows[3:]))
     (folder / "take_huge.csv").write_text("\n".join(rows[:2] + [rows[2].replace("0.100", "1e300", 1)] + rows[3:]))
     # graph copies with bad values a graph file can hold
@@ -416,8 +416,8 @@ def probes(facts: dict) -> list[Probe]:
         add(f"distance_cm={value}", "livelink_to_render", "csv={in}/take.csv", *ll, f"distance_cm={value}")
     add("images=.txt", "livelink_to_render", "csv={in}/take.csv", "images={out}/render.%04d.txt")
     add("images= one file for every frame", "livelink_to_render", "csv={in}/take.csv", "images={out}/render.png")
-    add("images= pattern over the input plates", "livelink_to_render", "csv={in}/take.csv",
-        "images={in}/plate.%04d.png")
+    add("images= the input CSV's name as a pattern", "livelink_to_render", "csv={in}/take.csv",
+        "images={in}/take.csv")
     add("--frames 1:3", "livelink_to_render", "csv={in}/take.csv", *ll, "fps=30", "--frames", "1:3", expect=R,
         check=_files_check("render.0001.png", "render.0002.png"), timeout=900)
     add("--frames 4:20 past the 6 rows", "livelink_to_render", "csv={in}/take.csv", *ll, "fps=30", "--frames", "4:20")
