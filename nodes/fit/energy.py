@@ -25,7 +25,9 @@ size right when a few landmarks are off.
 its eyeLook shapes (those only move the lids), so the fit turns each eyeball by the weights as the
 exporters read them (`nodes.io.arkit.eye_angles`: a full shape is `EYE_RANGE_RAD` of yaw or
 pitch, `R = R_y(yaw) R_x(pitch)`) about its centre (a sphere fitted to the eyeball); the iris
-centre is the eyeball's front-most vertex so turned. The stage solve re-linearizes it about the
+centre is the eyeball's front-most vertex so turned; the eyes sit where the mean head's do from
+the model's eye corners (`iris_model_points_at_corners`: a fitted identity moves the eyeballs where
+no landmark sees them). The stage solve re-linearizes it about the
 current weights at every step, as it does the rotation, and compares it with the plate's relative
 to the eye's corners (`iris_relative`), so that the head pose's error does not read as a look.
 
@@ -46,7 +48,8 @@ from ..geometry.rotation import skew_torch as _skew
 
 __all__ = ["CROP_UNITS_PX", "EDGES_68", "landmark_weights", "axis_angle_to_rotmat", "rotmat_to_axis_angle",
            "posed_anchor_points", "project_views", "landmark_energy", "IRIS_EYEBALLS", "EYE_LOOK_ROTATIONS",
-           "IRIS_CORNERS_68", "iris_relative", "eye_look_shapes", "iris_model_points", "iris_points"]
+           "IRIS_CORNERS_68", "iris_relative", "eye_look_shapes", "iris_model_points", "iris_model_points_at_corners",
+           "IRIS_FRONT_FROM_CORNERS", "IRIS_CENTRE_FROM_CORNERS", "iris_points"]
 
 CROP_UNITS_PX = 256.0
 """Residuals are measured in pixels of a crop box resized to this side (the paper's 256)."""
@@ -74,7 +77,8 @@ def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0, 
     """Per-landmark weights W (the paper's weight matrix, diagonal) of one stage.
 
     Args:
-        set_name: "non_jaw" (jaw contour 0-16 weight 0), "jaw" (only 0-16), or "all".
+        set_name: "non_jaw" (jaw contour 0-16 weight 0), "jaw" (only 0-16), "all", or "none"
+            (every weight 0: the eye stage, where only the iris centres move the eyeLook weights).
         eyelid: weight of the eyelid points (37, 38, 40, 41, 43, 44, 46, 47): the network
             reads them poorly on renders, and blinks are not fitted.
         mouth: weight of the lip points 48-67 (the paper weights them up in the first
@@ -95,8 +99,10 @@ def landmark_weights(set_name: str, *, eyelid: float = 0.2, mouth: float = 1.0, 
         keep[JAW_68] = True
         w[~keep] = 0.0
         w[JAW_68] = 1.0
+    elif set_name == "none":
+        w[:] = 0.0
     elif set_name != "all":
-        raise ValueError(f"set_name: expected 'non_jaw', 'jaw' or 'all', found {set_name!r}")
+        raise ValueError(f"set_name: expected 'non_jaw', 'jaw', 'all' or 'none', found {set_name!r}")
     return w
 
 
@@ -118,7 +124,7 @@ taken relative to their midpoint (`iris_relative`)."""
 
 
 def iris_relative(values: Tensor) -> Tensor:
-    """Make the last two points' rows (the iris centres) relative to their eye's corner midpoint.
+    """Make the iris centres' rows relative to their eye's corner midpoint.
 
     Applied to residuals `(target - predicted)` (or their Jacobian rows), it compares where each
     iris sits between its eye's corners on the plate and on the model: an error of the head's pose
@@ -126,13 +132,13 @@ def iris_relative(values: Tensor) -> Tensor:
     look of the iris alone).
 
     Args:
-        values: (B, C, L, ...) with the 68 Multi-PIE points first and the two iris centres last.
+        values: (B, C, L, ...) with the 68 Multi-PIE points first, then the two iris centres, then
+            the four eye corners they are measured from (`IRIS_CORNERS_68`, flattened): L = 74.
     Returns:
-        the same shape; rows L-2, L-1 minus the mean of rows `IRIS_CORNERS_68`.
+        the same shape; the iris rows (L-6, L-5) minus the mean of their eye's corner rows.
     """
-    corners = torch.as_tensor(IRIS_CORNERS_68, device=values.device)
-    mid = values[:, :, corners].mean(3)  # (B, C, 2, ...)
-    return torch.cat([values[:, :, :-2], values[:, :, -2:] - mid], 2)
+    mid = values[:, :, -4:].unflatten(2, (2, 2)).mean(3)  # (B, C, 2, ...)
+    return torch.cat([values[:, :, :-6], values[:, :, -6:-4] - mid, values[:, :, -4:]], 2)
 
 
 def eye_look_shapes(names: list[str]) -> list[int]:
@@ -180,6 +186,48 @@ def iris_model_points(neutral: np.ndarray, eyeballs: list[np.ndarray], names: li
             e, axis = EYE_LOOK_ROTATIONS[name]
             turns[k, e] = np.array([axis[1], axis[0]]) * angle  # yaw about y, pitch about x
     return front, centres, turns
+
+
+IRIS_FRONT_FROM_CORNERS = np.array([[-0.0132, 0.0413, 0.1149], [0.0132, 0.0413, 0.1149]])
+"""Iris centre at weight 0 of eye 0 (the subject's right) and eye 1, from its eye's corner midpoint
+(`IRIS_CORNERS_68`), in eye distances (the 68 points' eye centres' distance), model frame: the ICT
+mean head's eyeball front vertices (`iris_model_points` on its neutral; eye distance 6.513 cm)."""
+
+IRIS_CENTRE_FROM_CORNERS = np.array([[0.0024, 0.0407, -0.1353], [-0.0024, 0.0407, -0.1353]])
+"""Eyeball centre of rotation of eye 0 and eye 1 from its eye's corner midpoint, eye distances,
+model frame: the ICT mean head's (least-squares spheres; radius 0.2507 eye distances)."""
+
+
+def iris_model_points_at_corners(neutral: np.ndarray, landmarks: np.ndarray, names: list[str], *,
+                                 angle: float = EYE_RANGE_RAD) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The model's two eyes for `iris_points`, placed from its eye corners as on the mean head.
+
+    A fitted identity moves the eyeballs where no landmark sees them: on skimage's astronaut
+    (identity norm 12) they sat 0.06-0.07 eye distances lateral and 0.07 behind where the mean
+    head's would be, and the fit read that as a look of 0.9-1.0 to one side. The eyes are
+    therefore placed at the mean head's offsets from the model's own eye corners
+    (`IRIS_FRONT_FROM_CORNERS`, `IRIS_CENTRE_FROM_CORNERS`), scaled by its eye distance. Over
+    identities drawn from the prior (N(0, 1)) the eyeball fronts' own offsets from the corners
+    spread by 0.009-0.011 eye distances (std), about 0.08 of a full look.
+
+    Args:
+        neutral: (V, 3) the model's neutral (identity applied), cm, model frame.
+        landmarks: (68,) the Multi-PIE landmark vertices.
+        names: the K expression names.
+        angle: eye rotation of a full shape, radians.
+    Returns:
+        front (2, 3) cm, centres (2, 3) cm and turns (K, 2, 2) radians per unit weight, as
+        `iris_model_points`.
+    """
+    points = np.asarray(neutral, np.float64)[np.asarray(landmarks)]
+    eye_distance = float(np.linalg.norm(points[36:42].mean(0) - points[42:48].mean(0)))
+    mid = points[IRIS_CORNERS_68].mean(1)  # (2, 3)
+    turns = np.zeros((len(names), 2, 2))
+    for k, name in enumerate(names):
+        if name in EYE_LOOK_ROTATIONS:
+            e, axis = EYE_LOOK_ROTATIONS[name]
+            turns[k, e] = np.array([axis[1], axis[0]]) * angle  # yaw about y, pitch about x
+    return mid + eye_distance * IRIS_FRONT_FROM_CORNERS, mid + eye_distance * IRIS_CENTRE_FROM_CORNERS, turns
 
 
 def iris_points(front: Tensor, centres: Tensor, turns: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:

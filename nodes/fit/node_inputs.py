@@ -150,7 +150,7 @@ def _appearance(model: FaceModel, appearance: JsonValue | None) -> tuple[np.ndar
 
 def _fit_model(model: FaceModel, appearance: JsonValue | None, device: str, iris: bool = False) -> Any:
     """The FitModel of the model and appearance; with `iris`, its eyes as the eyeLook shapes turn
-    them (`nodes.fit.energy.iris_model_points`, from the eyeball groups)."""
+    them (`nodes.fit.energy.iris_model_points_at_corners`, placed from the eye corners)."""
     from .views import FitModel
 
     albedo, sh, background, hidden = _appearance(model, appearance)
@@ -166,14 +166,9 @@ def _fit_model(model: FaceModel, appearance: JsonValue | None, device: str, iris
         return fm
     import torch
 
-    from .energy import IRIS_EYEBALLS, iris_model_points
+    from .energy import iris_model_points_at_corners
 
-    missing = [g for g in IRIS_EYEBALLS if g not in model.groups]
-    if missing:
-        raise InputError("model", f"expected the eyeball vertex groups {list(IRIS_EYEBALLS)} to read the iris, "
-                         f"found no {missing} (groups: {sorted(model.groups)})")
-    front, centres, turns = iris_model_points(model.neutral, [model.groups[g] for g in IRIS_EYEBALLS],
-                                              list(model.expression_names))
+    front, centres, turns = iris_model_points_at_corners(model.neutral, model.landmarks, list(model.expression_names))
     t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)  # noqa: E731
     return dataclasses.replace(fm, iris=t(front), iris_centres=t(centres), iris_turns=t(turns))
 

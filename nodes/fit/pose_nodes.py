@@ -150,9 +150,10 @@ class _ExpressionParams(_FitParams):
                             "the expression after temporal smoothing of the rigid motion); frames without "
                             "landmarks then keep the input's values instead of failing.")
     iris_weight: float = Param(1.0, ge=0, description="Weight of each iris centre (the `iris` port) in a last "
-                               "stage that solves the eight eyeLook weights (the 68 points weigh 1): the model's "
-                               "iris centre, its eyeball's front turned by EYE_RANGE_RAD (30 deg) per unit "
-                               "weight, against the plate's; 0 = the eyeLook weights are not solved.")
+                               "stage that solves the eight eyeLook weights from the iris alone (the 68 points "
+                               "and the photometric term do not count there; the prior does): the model's iris "
+                               "centre, its eyeball's front turned by EYE_RANGE_RAD (30 deg) per unit weight, "
+                               "against the plate's; 0 = the eyeLook weights are not solved.")
     eye_prior: float = Param(4.0, ge=0, description="lambda of the L2 prior on the eyeLook weights, 256-crop "
                              "pixel^2 per unit weight^2 (a unit weight moves the iris centre at least 9.4 such "
                              "pixels in tests/nodes/fit/test_eye_look.py's shot, crops 1.3 landmark extents wide, "

@@ -42,8 +42,9 @@ from torch import Tensor
 from ..geometry.image import crop_to_image
 from ..geometry.lm import LMSchedule, levenberg_marquardt
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
-from .energy import (EDGES_68, _skew, axis_angle_to_rotmat, eye_look_shapes, iris_points, iris_relative,
-                     landmark_energy, landmark_weights, posed_anchor_points, project_views, project_views_jacobian)
+from .energy import (EDGES_68, IRIS_CORNERS_68, _skew, axis_angle_to_rotmat, eye_look_shapes, iris_points,
+                     iris_relative, landmark_energy, landmark_weights, posed_anchor_points, project_views,
+                     project_views_jacobian)
 from .photometric import PhotoSamples, PhotoTerm, photometric_samples
 from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors, landmark_anchors, network_points,
                     render_crops)
@@ -89,12 +90,13 @@ class Stage:
         name: for logs and histories.
         rotation, translation: the rigid pose moves.
         shapes: indices of the expression shapes that move.
-        landmarks: "non_jaw", "jaw" or "all" (`nodes.fit.energy.landmark_weights`).
+        landmarks: "non_jaw", "jaw", "all" or "none" (`nodes.fit.energy.landmark_weights`).
         mouth_weight: weight of the lip points 48-67.
         jaw_weight: weight of the jaw contour points 0-16 when `landmarks` is "all".
         iris_weight: weight of each of the two iris centres (`FitViews.iris`, `FitModel.iris`;
             0 = not used, and not used where either is None).
         prior: lambda of this stage's L2 prior on the active weights; None = the solve's.
+        photometric: the photometric term counts (where the solve has one).
     """
 
     name: str
@@ -106,6 +108,7 @@ class Stage:
     jaw_weight: float = 1.0
     iris_weight: float = 0.0
     prior: float | None = None
+    photometric: bool = True
 
 
 RIGID_STAGES = (
@@ -139,8 +142,13 @@ def expression_stages(names: list[str]) -> tuple[Stage, ...]:
 
 
 def eye_stage(names: list[str], *, iris_weight: float = 1.0, prior: float = 4.0) -> Stage:
-    """The eyeLook shapes from the iris centres (and the lids' points), pose held; a frame whose
-    iris was not read keeps its weights (`solve_stage`).
+    """The eyeLook shapes from the iris centres alone, pose held; a frame whose iris was not read
+    keeps its weights (`solve_stage`).
+
+    The 68 points weigh 0 here, and the photometric term is off: the ICT eyeLook shapes also move
+    the lids and the outer eye corners (up to 0.64 and 0.25 cm), and the render's eyes are empty
+    sockets (the eyeballs are hidden), so both terms turned the eyes to fit the lids: on skimage's
+    astronaut (looking into the camera) both eyes went a full look to one side.
 
     Args:
         names: the model's expression names (needs the eight eyeLook shapes).
@@ -153,37 +161,50 @@ def eye_stage(names: list[str], *, iris_weight: float = 1.0, prior: float = 4.0)
     if len(shapes) != 8:
         raise ValueError(f"expression names: expected the eight eyeLook{{In,Out,Up,Down}}_{{L,R}} shapes, found "
                          f"{[names[i] for i in shapes]}")
-    return Stage("eyes", False, False, shapes, "all", iris_weight=iris_weight, prior=prior)
+    return Stage("eyes", False, False, shapes, "none", iris_weight=iris_weight, prior=prior, photometric=False)
 
 
 def _with_iris(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors,
                w_lm: Tensor) -> tuple[FitViews, Anchors, Tensor, bool]:
-    """The stage's targets with the plate's two iris centres appended (L -> L + 2) when it uses them.
+    """The stage's targets with the plate's two iris centres and the four eye corners they are
+    measured from appended (L -> L + 6, as `nodes.fit.energy.iris_relative` reads them) when it uses
+    them.
 
-    Their weight is `stage.iris_weight` (0 where not read) and their offset 0; the matching model
-    points come from `_iris_rows`. Returns views, anchors, w_lm (as given, or (B, C, L + 2)) and whether
-    the iris was appended.
+    The iris rows weigh `stage.iris_weight` (0 where not read), the corner rows 0 (they enter only
+    through `iris_relative`); their offset is 0; the matching model points come from `_iris_rows`.
+    Returns views, anchors, w_lm (as given, or (B, C, L + 6)) and whether the iris was appended.
     """
     if stage.iris_weight <= 0 or model.iris is None or views.iris is None:
         return views, anchors, w_lm, False
     w3 = w_lm if w_lm.ndim == 3 else w_lm.expand(*views.target.shape[:3])
     b, c = views.seen.shape
     found = torch.isfinite(views.iris).all(-1) & views.seen[..., None]  # (B, C, 2)
-    target = torch.cat([views.target, torch.where(found[..., None], views.iris, 0.0).to(views.target.dtype)], 2)
-    offset = torch.cat([anchors.offset, torch.zeros(b, c, 2, 2, dtype=anchors.offset.dtype,
+    corners = torch.as_tensor(IRIS_CORNERS_68.reshape(-1), device=views.target.device)
+    target = torch.cat([views.target, torch.where(found[..., None], views.iris, 0.0).to(views.target.dtype),
+                        views.target[:, :, corners]], 2)
+    offset = torch.cat([anchors.offset, torch.zeros(b, c, 6, 2, dtype=anchors.offset.dtype,
                                                     device=anchors.offset.device)], 2)
     w_iris = found.to(w3.dtype) * float(stage.iris_weight)
-    return (dataclasses.replace(views, target=target), anchors._replace(offset=offset), torch.cat([w3, w_iris], 2),
-            True)
+    return (dataclasses.replace(views, target=target), anchors._replace(offset=offset),
+            torch.cat([w3, w_iris, torch.zeros_like(w3[..., :4])], 2), True)
 
 
 def _iris_rows(model: FitModel, weights: Tensor, c: int) -> tuple[Tensor, Tensor]:
-    """The iris centres as anchored points, linear in the weights about `weights` (B, K): neutral
-    (B, C, 2, 3) and shapes (B, C, 2, K, 3) such that `neutral + sum_k w_k shape_k` is the exact
-    turned centre (`nodes.fit.energy.iris_points`) at `weights`, with its derivative."""
+    """The iris centres, then the eye corners' landmark vertices, as anchored points, linear in the
+    weights about `weights` (B, K): neutral (B, C, 6, 3) and shapes (B, C, 6, K, 3) such that
+    `neutral + sum_k w_k shape_k` is the exact turned centre (`nodes.fit.energy.iris_points`) at
+    `weights`, with its derivative, and the corner vertices (linear in the weights).
+
+    The corners are the model's own vertices, not the network's reading of the render: the iris
+    centre is the model's geometry too, and the render's eyes (eyeballs hidden) are read with a
+    bias that, on skimage's astronaut, turned both eyes a full look to one side."""
     point, deriv = iris_points(model.iris, model.iris_centres, model.iris_turns, weights)
     base = point - torch.einsum("bk,bekd->bed", weights, deriv)
     b = weights.shape[0]
+    vert = torch.as_tensor(model.landmarks[IRIS_CORNERS_68.reshape(-1)], device=weights.device)
+    c_base = model.neutral[vert].to(weights.dtype)[None].expand(b, -1, -1)  # (B, 4, 3)
+    c_deriv = model.deltas[:, vert].to(weights.dtype).permute(1, 0, 2)[None].expand(b, -1, -1, -1)  # (B, 4, K, 3)
+    base, deriv = torch.cat([base, c_base], 1), torch.cat([deriv, c_deriv], 1)
     return base[:, None].expand(b, c, *base.shape[1:]), deriv[:, None].expand(b, c, *deriv.shape[1:])
 
 
@@ -382,7 +403,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
     neutral, deltas = in_dtype(_anchored(model, anchors), SOLVE_DTYPE)
     views, anchors, state, photo, rigid_prior = in_dtype((views, anchors, state, photo, rigid_prior), SOLVE_DTYPE)
     b = state.rot.shape[0]
-    use_photo = photo is not None and photo_weight > 0
+    use_photo = photo is not None and photo_weight > 0 and stage.photometric
     if use_photo:
         shape_list = list(stage.shapes)
         p_basis = photo.deltas[:, :, :, shape_list].transpose(-1, -2)  # (B, C, N, 3, S)
@@ -466,7 +487,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
             r = now["residuals"](x)
         rot, trans, weights = now["rot"], now["trans"], now["weights"]
         if iris:  # a frame whose iris no camera read keeps its eyeLook weights (the lids alone do not move them)
-            read = (w_lm[..., -2:] > 0).flatten(1).any(1)
+            read = (w_lm[..., -6:-4] > 0).flatten(1).any(1)
             weights = torch.where(read[:, None], weights, state.weights)
         m_lm = r.shape[1] - (photo.weight[0].numel() * 3 if use_photo else 0)  # landmark residuals come first
         drop = len(stage.shapes) + (12 if rigid_prior is not None and rigid_prior_weight > 0 else 0)

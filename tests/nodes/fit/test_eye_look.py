@@ -207,7 +207,7 @@ def test_the_relative_iris_rows_jacobian_matches_forward_autodiff(shot):
     stage = eye_stage(list(model.expression_names))
     w_lm = torch.full((68,), 0.5)
     views, anchors, w_lm, used = _with_iris(stage, fm, views, anchors, w_lm)
-    assert used and w_lm.shape == (FRAMES, 1, 70)
+    assert used and w_lm.shape == (FRAMES, 1, 74)
     d64 = torch.float64
     views = type(views)(**{k: (v.to(d64) if torch.is_tensor(v) and v.is_floating_point() else v)
                            for k, v in vars(views).items()})
@@ -232,3 +232,27 @@ def test_iris_inputs_are_checked(shot):
         _expression(shot, iris=[Landmarks2D(np.zeros((FRAMES, 5, 2), np.float32), np.ones((FRAMES, 5), np.float32))])
     with pytest.raises((InputError, NodeError), match="iris.*expected"):
         _expression(shot, iris=[shot["iris"], shot["iris"]])
+
+
+def test_the_eyes_sit_at_the_mean_heads_place_from_the_corners_whatever_the_identity():
+    """`iris_model_points_at_corners` (what the fit uses) reproduces the mean head's own eyeballs
+    (`iris_model_points`: its constants are that measurement, rounded to 1e-4 eye distances, so
+    within 6.5e-4 cm x sqrt(3) of it), and under an extreme identity (3 sigma on every component)
+    keeps the eyes at the mean head's offsets from that identity's corners, where the identity's
+    own eyeballs drift away."""
+    from nodes.fit.energy import IRIS_CORNERS_68, IRIS_FRONT_FROM_CORNERS, iris_model_points_at_corners
+
+    model = load_face_model()
+    names = list(model.expression_names)
+    balls = [model.groups[g] for g in IRIS_EYEBALLS]
+    front, centres, turns = iris_model_points(model.neutral, balls, names)
+    got = iris_model_points_at_corners(model.neutral, model.landmarks, names)
+    assert np.abs(got[0] - front).max() < 1.2e-3 and np.abs(got[1] - centres).max() < 1.2e-3
+    assert np.array_equal(got[2], turns)
+    rng = np.random.default_rng(0)
+    neutral = model.neutral + np.einsum("i,ivc->vc", 3.0 * np.sign(rng.normal(size=40)), model.identity_deltas)
+    points = neutral[model.landmarks].astype(np.float64)
+    eye_distance = np.linalg.norm(points[36:42].mean(0) - points[42:48].mean(0))
+    mid = points[IRIS_CORNERS_68].mean(1)
+    placed = iris_model_points_at_corners(neutral, model.landmarks, names)[0]
+    assert np.allclose((placed - mid) / eye_distance, IRIS_FRONT_FROM_CORNERS, atol=1e-9)
