@@ -134,14 +134,17 @@ def fit_synthesis(p: NodeParams, captures: list[np.ndarray], quasistatic: list[n
         ok = segment_margin_mask(segments[i], len(captures[i]), reach)
         ok[:reach] = ok[-reach:] = False
         frames = np.flatnonzero(ok)
+        if not len(frames):  # a capture shorter than the window's reach gives no training rows
+            continue
         rows = synthesis_inputs(quasistatic[i], skulls[i], neutrals[i], landmarks, stencil, fps[i],
                                 p.window, p.feature_fps)
         dy = dynamic_offsets(captures[i][:, samples], quasistatic[i][:, samples], skulls[i])
         inputs.append(rows[frames])
         targets.append(dy[frames].reshape(len(frames), -1).astype(np.float32))
+    if not inputs:
+        raise InputError("captures", f"expected frames away from segment changes and ends, found none in "
+                                     f"{len(captures)} capture(s) of {[len(c) for c in captures]} frames")
     x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
-    if not len(x_all):
-        raise InputError("captures", "expected frames away from segment changes and ends, found none")
     in_mean, in_std = standardize_stats(x_all)
     out_mean, out_std = standardize_stats(y_all)
     result = train_mlp((x_all - in_mean) / in_std, (y_all - out_mean) / out_std, hidden=p.hidden,
