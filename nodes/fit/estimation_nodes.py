@@ -51,7 +51,16 @@ class PlateCamera(Node):
     camera = Out(Camera, doc="The camera (OpenCV convention, cm).")
 
     def input_files(self, frames: range | None = None) -> list[Path]:
-        return [Path(self.params.path)] if self.params.path else []
+        """The camera file, read once while planning so that a malformed one is refused before the
+        plate is read and its faces followed (it was refused only after landmarks.TrackFaces ran)."""
+        if not self.params.path:
+            return []
+        path = Path(self.params.path)
+        if path.is_file():
+            from ..io.camera import load_camera
+
+            load_camera(self.params.path)
+        return [path]
 
     def run(self, images: ImageSequence) -> dict[str, Camera]:
         h, w = images.pixels.shape[1:3]
