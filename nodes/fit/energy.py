@@ -48,8 +48,8 @@ from ..geometry.rotation import skew_torch as _skew
 
 __all__ = ["CROP_UNITS_PX", "EDGES_68", "landmark_weights", "axis_angle_to_rotmat", "rotmat_to_axis_angle",
            "posed_anchor_points", "project_views", "landmark_energy", "IRIS_EYEBALLS", "EYE_LOOK_ROTATIONS",
-           "IRIS_CORNERS_68", "iris_relative", "eye_look_shapes", "iris_model_points", "iris_model_points_at_corners",
-           "IRIS_FRONT_FROM_CORNERS", "IRIS_CENTRE_FROM_CORNERS", "iris_points"]
+           "IRIS_CORNERS_68", "iris_relative", "eye_look_shapes", "eye_turns", "iris_model_points",
+           "iris_model_points_at_corners", "IRIS_FRONT_FROM_CORNERS", "IRIS_CENTRE_FROM_CORNERS", "iris_points"]
 
 CROP_UNITS_PX = 256.0
 """Residuals are measured in pixels of a crop box resized to this side (the paper's 256)."""
@@ -146,6 +146,17 @@ def eye_look_shapes(names: list[str]) -> list[int]:
     return [i for i, n in enumerate(names) if n in EYE_LOOK_ROTATIONS]
 
 
+def eye_turns(names: list[str], angle: float = EYE_RANGE_RAD) -> np.ndarray:
+    """(K, 2, 2) yaw and pitch of each eye per unit weight of each of the K shapes, radians (0 for
+    shapes other than `EYE_LOOK_ROTATIONS`; a full shape turns its eye by `angle`)."""
+    turns = np.zeros((len(names), 2, 2))
+    for k, name in enumerate(names):
+        if name in EYE_LOOK_ROTATIONS:
+            e, axis = EYE_LOOK_ROTATIONS[name]
+            turns[k, e] = np.array([axis[1], axis[0]]) * angle  # yaw about y, pitch about x
+    return turns
+
+
 def iris_model_points(neutral: np.ndarray, eyeballs: list[np.ndarray], names: list[str], *,
                       angle: float = EYE_RANGE_RAD) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The model's two eyes for `iris_points`: front vertices, centres, and each shape's turn.
@@ -180,12 +191,7 @@ def iris_model_points(neutral: np.ndarray, eyeballs: list[np.ndarray], names: li
         a = np.concatenate([2.0 * ball, np.ones((len(ball), 1))], 1)  # |x|^2 = 2 c.x + (r^2 - |c|^2)
         centres[e] = np.linalg.lstsq(a, (ball ** 2).sum(1), rcond=None)[0][:3]
         front[e] = ball[np.argmax(ball[:, 2])]
-    turns = np.zeros((len(names), 2, 2))
-    for k, name in enumerate(names):
-        if name in EYE_LOOK_ROTATIONS:
-            e, axis = EYE_LOOK_ROTATIONS[name]
-            turns[k, e] = np.array([axis[1], axis[0]]) * angle  # yaw about y, pitch about x
-    return front, centres, turns
+    return front, centres, eye_turns(names, angle)
 
 
 IRIS_FRONT_FROM_CORNERS = np.array([[-0.0132, 0.0413, 0.1149], [0.0132, 0.0413, 0.1149]])
@@ -222,12 +228,8 @@ def iris_model_points_at_corners(neutral: np.ndarray, landmarks: np.ndarray, nam
     points = np.asarray(neutral, np.float64)[np.asarray(landmarks)]
     eye_distance = float(np.linalg.norm(points[36:42].mean(0) - points[42:48].mean(0)))
     mid = points[IRIS_CORNERS_68].mean(1)  # (2, 3)
-    turns = np.zeros((len(names), 2, 2))
-    for k, name in enumerate(names):
-        if name in EYE_LOOK_ROTATIONS:
-            e, axis = EYE_LOOK_ROTATIONS[name]
-            turns[k, e] = np.array([axis[1], axis[0]]) * angle  # yaw about y, pitch about x
-    return mid + eye_distance * IRIS_FRONT_FROM_CORNERS, mid + eye_distance * IRIS_CENTRE_FROM_CORNERS, turns
+    return (mid + eye_distance * IRIS_FRONT_FROM_CORNERS, mid + eye_distance * IRIS_CENTRE_FROM_CORNERS,
+            eye_turns(names, angle))
 
 
 def iris_points(front: Tensor, centres: Tensor, turns: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
