@@ -34,9 +34,10 @@ import inspect
 import json
 import traceback
 import weakref
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Iterator, Mapping
 
 from pydantic import ValidationError
 
@@ -120,6 +121,11 @@ class Node:
     writes_files: ClassVar[bool] = False
     resources: ClassVar[dict[str, float]] = {}
     preload: ClassVar[tuple[str, ...]] = ()
+    torch_threads: ClassVar[int | None] = None
+    """Torch intra-op threads of this node's `run` on the CPU (None: the process's). A float
+    reduction split over threads rounds differently for each thread count; 1 makes the answer the
+    same on every machine's thread count for a node that amplifies rounding (an iterative fit).
+    Parallelism then comes from running chunks of frames side by side."""
     port_renames: ClassVar[dict[int, dict[str, str]]] = {}
     Params: ClassVar[type[NodeParams]] = NodeParams
     inputs: ClassVar[dict[str, In]] = {}
@@ -354,6 +360,29 @@ def wrap_error(node: Node, err: Exception, frames: tuple[int, int] | None = None
                      bad_input=bad_input)
 
 
+@contextmanager
+def intra_op_threads(threads: int | None) -> Iterator[None]:
+    """Run torch's CPU ops on `threads` intra-op threads inside the block (None: unchanged).
+
+    With torch's OpenMP backend the count belongs to the calling thread (OpenMP's and MKL's
+    per-thread settings), so a dask worker thread setting it does not change its neighbours';
+    it is restored on exit.
+    """
+    if threads is None:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    if before != threads:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if before != threads:
+            torch.set_num_threads(before)
+
+
 def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: range,
             progress: Callable[[float, str], None] | None = None, *, seed: int | None = None,
             device: str = "cpu") -> dict[str, PortType]:
@@ -404,8 +433,9 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
                                      sort_keys=True)) if seed is None else int(seed)
     node._device = device
     try:
-        result = node.run(**{name: (list(inputs.get(name) or []) if port.many else inputs.get(name))
-                             for name, port in node.inputs.items()})
+        with intra_op_threads(node.torch_threads):
+            result = node.run(**{name: (list(inputs.get(name) or []) if port.many else inputs.get(name))
+                                 for name, port in node.inputs.items()})
     except Exception as err:
         raise wrap_error(node, err, _where(node, frames)) from err
     finally:

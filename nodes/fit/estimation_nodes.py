@@ -82,6 +82,7 @@ class EstimateAppearance(Node):
     version = 6
     kind = SEQUENCE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
 
     class Params(NodeParams):
         mode: Literal["estimate", "default"] = Param("estimate", description="estimate from the plate, or the "
@@ -233,6 +234,7 @@ class EstimateIdentity(Node):
     version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = SEQUENCE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
 
     class Params(NodeParams):
         mode: Literal["estimate", "file", "mean"] = Param("estimate", description="estimate, read 'path', or "

@@ -121,6 +121,7 @@ class RigidPose(Node):
     version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
     Params = _FitParams
 
     landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
@@ -168,6 +169,7 @@ class Expression(Node):
     version = 7  # 7: eyeLook weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
     Params = _ExpressionParams
 
     landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
