@@ -166,6 +166,7 @@ class DetectFaces(Node):
     version = 2
     kind = SEQUENCE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same points for any thread count (issue 30): the fit amplifies rounding
 
     class Params(_FaceParams):
         track_iou: float = Param(0.3, gt=0, le=1, description="Least overlap (IoU) with the previous frame's face "
@@ -211,6 +212,7 @@ class FaceLandmarks(Node):
     version = 2
     kind = FRAMEWISE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same points for any thread count (issue 30): the fit amplifies rounding
 
     class Params(NodeParams):
         heatmap_input_size: int = Param(256, ge=8, description="Crop side of a connected heatmap network "
@@ -302,6 +304,7 @@ class TrackFaces(Node):
     version = 3  # 3: the full-range look (`full_range`); 2: the quarter-turned and sharpened looks
     kind = SEQUENCE
     resources = {"gpu": 1}
+    torch_threads = 1  # the same points for any thread count (issue 30): the fit amplifies rounding
 
     class Params(_FaceParams):
         min_presence: float = Param(0.5, ge=0, le=1, description="Least face-mesh presence of a face read: "
