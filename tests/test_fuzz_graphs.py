@@ -202,6 +202,8 @@ def _inputs(folder: Path) -> dict[str, Path]:
     files["takes"] = folder / "takes"
     files["takes"].mkdir()
     np.savez(files["takes"] / "take_a.npz", **face)
+    files["neutral"] = folder / "neutral.npz"  # one frame: dynamics.LoadNeutral refuses a take
+    np.savez(files["neutral"], **face | {"vertices": face["vertices"][:1], "rigid": face["rigid"][:1]})
     from nodes.dynamics.files import BUNDLED_REMOVAL
 
     files["model_file"] = BUNDLED_REMOVAL
@@ -247,7 +249,7 @@ GOOD = {  # good inputs, by name in `_inputs`
     "dynamics_remove": {"capture": "face_capture", "skull": "face_capture", "model": ""},
     "dynamics_retarget": {"removal_model": "model_file", "synthesis_model": "model_file"},
     "dynamics_train": {},
-    "dynamics_train_captures": {"captures": "takes", "neutral": "face_capture"},
+    "dynamics_train_captures": {"captures": "takes", "neutral": "neutral"},
     "stabilize": {"capture": "capture"},
     "livelink_to_render": {"csv": "take_csv"},
     "synthetic_capture": {},
@@ -306,7 +308,8 @@ BAD_VALUES = [
     ("dynamics_train_captures", "fps", "-1", "takes"),
     ("dynamics_train_captures", "epochs", "2.5", "train"),
     ("dynamics_train_captures", "model", "out/removal.txt", "save"),
-    ("dynamics_train_captures", "model", "@face_capture", "save"),
+    ("dynamics_train_captures", "model", "@neutral", "save"),
+    ("dynamics_train_captures", "neutral", "face_capture", "neutral"),  # a take (8 frames) as the neutral
     ("dynamics_train_captures", "report", "out/report.npz", "report"),
     ("stabilize", "capture", "garbage_npz", "load"),
     ("stabilize", "capture", "folder", "load"),

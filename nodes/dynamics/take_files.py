@@ -2,8 +2,10 @@
 folder of takes into one `nodegraph.takes.Takes` value (each take its own length and frame rate):
 NPZ (`vertices [F,V,3]`, `faces`, `fps`, optional `rigid [F,4,4]` skull-to-world), USD, numbered
 OBJ/PLY (`take_a.0001.obj`, ... = one take). Each take is read through the run's cache, keyed by
-its files' contents: adding a take to the folder re-reads only that one. The training on the
-takes is in `takes.py`.
+its files' contents: adding a take to the folder re-reads only that one. LoadTakes is the run's
+frame source (its frame count is the longest take's): `--frames a:b` keeps frames a:b of every
+take. `dynamics.LoadNeutral` reads the subject's one-frame neutral as a whole value, so it takes
+no part in the run's frames. The training on the takes is in `takes.py`.
 """
 
 from __future__ import annotations
@@ -16,13 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from nodegraph import SEQUENCE, InputError, MeshSequence, Node, NodeParams, Out, Param, RigidSequence
+from nodegraph import (SEQUENCE, InputError, MeshSequence, Node, NodeParams, Out, Param, ParamSequence,
+                       RigidSequence)
 from nodegraph.files import file_sha256
 from nodegraph.takes import Takes, cached_take
 
 from ..io.mesh import load_mesh_sequence, mesh_frame_count
 
-__all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "LoadTakes"]
+__all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "slice_takes", "LoadTakes", "LoadNeutral"]
+
+MIN_TAKE_FRAMES = 2  # a take needs a velocity: fewer frames in the run's range leave it out
 
 TAKE_SUFFIXES = (".npz", ".usd", ".usda", ".usdc", ".obj", ".ply")
 _NUMBERED = re.compile(r"^(?P<head>.*?)(?P<number>\d+)\.(?P<ext>obj|ply)$", re.IGNORECASE)
@@ -114,11 +119,41 @@ def read_take(name: str, path: str, fps: float) -> tuple[MeshSequence, RigidSequ
     return mesh, (RigidSequence(matrices=rigid) if rigid is not None else None)
 
 
+def slice_takes(names: list[str], meshes: list[MeshSequence], skulls: list[RigidSequence | None],
+                frames: range) -> tuple[list[int], np.ndarray]:
+    """Which takes keep at least `MIN_TAKE_FRAMES` of the run's `frames`, and the coverage.
+
+    Args:
+        names: N take names (for messages).
+        meshes: N takes, each its own length.
+        skulls: N skull motions (None where a take has none).
+        frames: the run's absolute frames (`--frames a:b`; default 0 to the longest take).
+    Returns:
+        (kept take indices, coverage (len(frames), N) float32: 1 where take n has the run's
+        frame f, else 0).
+    Raises:
+        InputError: ("captures") no take keeps `MIN_TAKE_FRAMES` frames of the range.
+    """
+    lengths = np.array([m.num_frames for m in meshes], np.int64)
+    run = np.arange(frames.start, frames.stop)
+    coverage = (run[:, None] < lengths[None, :]).astype(np.float32)
+    kept = [i for i, n in enumerate(lengths) if min(frames.stop, int(n)) - frames.start >= MIN_TAKE_FRAMES]
+    if not kept:
+        raise InputError("captures", f"--frames {frames.start}:{frames.stop}: expected takes with at least "
+                                     f"{MIN_TAKE_FRAMES} frames in the range, found take lengths "
+                                     f"{dict(zip(names, lengths.tolist()))}")
+    return kept, coverage
+
+
 class LoadTakes(Node):
-    """Read a day of capture: every take of a glob or folder, each its own length and frame rate."""
+    """Read a day of capture: every take of a glob or folder, each its own length and frame rate.
+
+    The run's frames are the takes' frames: the frame count is the longest take's, and a run of
+    frames a:b keeps frames a:b of every take (a take with fewer than 2 of them is left out,
+    shown by a zero column of `coverage`)."""
 
     type_name = "dynamics.LoadTakes"
-    version = 1
+    version = 2  # v2: the run's frame source; --frames a:b keeps frames a:b of every take
     kind = SEQUENCE
 
     class Params(NodeParams):
@@ -129,7 +164,21 @@ class LoadTakes(Node):
                            "(NPZ without fps, OBJ/PLY); 0 = such a take is an error (a guessed rate "
                            "would scale every velocity the network sees).")
 
-    takes = Out(Takes, doc="The takes, sorted by name; one topology.")
+    takes = Out(Takes, doc="The takes, sorted by name; one topology; frames a:b of each for a run of a:b.")
+    coverage = Out(ParamSequence, doc="Per run frame and take found (columns named by take): 1 where the "
+                                      "take has that frame, 0 where it is shorter (a take with fewer than "
+                                      "2 frames in the run is left out of `takes`).")
+
+    def frame_count(self) -> int | None:
+        """The longest take's frame count, read from the files' headers while planning; a take
+        whose header gives none is read, so that its error is one refusal before anything runs."""
+        counts = []
+        for name, path, _ in find_takes(self.params.captures):
+            count = mesh_frame_count(path)
+            if not count:
+                count = read_take(name, path, self.params.fps)[0].num_frames  # raises why
+            counts.append(int(count))
+        return max(counts)
 
     def input_files(self, frames: range | None = None) -> list[Path]:
         try:
@@ -161,7 +210,52 @@ class LoadTakes(Node):
             skulls.append(skull)
             self.progress((i + 1) / len(found), f"take {name}: {mesh.num_frames} frames at {mesh.fps:g} fps"
                           f"{'' if skull is not None else ', no rigid'}")
+        kept, coverage = slice_takes(names, meshes, skulls, self.frames)
+        start = self.frames.start
+        cut = [(names[i], meshes[i].slice_frames(start, min(self.frames.stop, meshes[i].num_frames)),
+                None if skulls[i] is None else
+                skulls[i].slice_frames(start, min(self.frames.stop, skulls[i].num_frames))) for i in kept]
         try:
-            return {"takes": Takes.from_sequences(names, meshes, skulls)}
+            takes = Takes.from_sequences([c[0] for c in cut], [c[1] for c in cut], [c[2] for c in cut])
         except ValueError as err:
             raise InputError("captures", str(err)) from err
+        return {"takes": takes, "coverage": ParamSequence(values=coverage, names=names)}
+
+
+class LoadNeutral(Node):
+    """Read the subject's neutral: one frame of a mesh file, as a whole value (not framed by the run)."""
+
+    type_name = "dynamics.LoadNeutral"
+    version = 1
+    kind = SEQUENCE
+
+    class Params(NodeParams):
+        path: str = Param(..., input_file=True, description="The neutral mesh: .npz, .usd/.usda/.usdc, or a "
+                          "numbered OBJ/PLY pattern (face.%04d.obj).")
+        frame: int | None = Param(None, ge=0, description="Frame of the file that is the neutral; none = "
+                                  "the file must hold exactly one frame (so that a take given by mistake "
+                                  "is refused, not read as a neutral).")
+        prim: str = Param("", description="USD only: Mesh prim path; empty = the first Mesh found.")
+
+    mesh = Out(MeshSequence, per_frame=False, doc="The neutral (1 frame, cm).")
+
+    def check_plan(self, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs: the file is read (one frame), so a missing or unreadable neutral,
+        or one of several frames without `frame`, is one refusal."""
+        self._read()
+
+    def _read(self) -> MeshSequence:
+        p = self.params
+        count = mesh_frame_count(p.path, prim=p.prim)
+        if not count:  # missing or unreadable: the reader says why
+            load_mesh_sequence(p.path, range(0, 1), prim=p.prim)
+        if p.frame is None and count != 1:
+            raise InputError("path", f"file '{p.path}': expected one frame (the neutral; or set 'frame' to "
+                                     f"pick one), found {count} frames")
+        frame = p.frame or 0
+        if frame >= count:
+            raise InputError("frame", f"file '{p.path}': expected a frame in 0..{count - 1}, found {frame}")
+        return load_mesh_sequence(p.path, range(frame, frame + 1), prim=p.prim)
+
+    def run(self) -> dict:
+        return {"mesh": self._read()}
