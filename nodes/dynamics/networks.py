@@ -5,8 +5,9 @@
 by the builder. Training: L2 loss, Adam, mini-batches drawn from a `torch.Generator` seeded by
 the caller (weights are initialised under the same seed), so a given seed reproduces the network
 bit for bit on one machine. Inputs and targets are standardized with their training mean and
-std; the statistics travel with the model (`TorchModel.normalization`). torch is imported only
-inside the functions.
+std; the statistics travel with the model (`TorchModel.normalization`). An input column that was
+constant over the training rows (its std at `STD_FLOOR`) is read as its training value when the
+network is applied (`standardize_inputs`). torch is imported only inside the functions.
 """
 
 from __future__ import annotations
@@ -19,7 +20,11 @@ import numpy as np
 
 from nodegraph import register_architecture
 
-__all__ = ["build_mlp", "TrainResult", "standardize_stats", "train_mlp", "predict", "single_thread"]
+__all__ = ["build_mlp", "TrainResult", "STD_FLOOR", "standardize_stats", "standardize_inputs", "train_mlp",
+           "predict", "single_thread"]
+
+STD_FLOOR = 1e-6
+"""Smallest stored std of a standardized column; a column at it was constant in training."""
 
 
 @register_architecture("dynamics.MLP")
@@ -54,6 +59,24 @@ def standardize_stats(values: np.ndarray, *, floor: float = 1e-6) -> tuple[np.nd
     mean = values.mean(axis=0, dtype=np.float64)
     std = np.sqrt(np.maximum(values.var(axis=0, dtype=np.float64), 0.0))
     return mean.astype(np.float32), np.maximum(std, floor).astype(np.float32)
+
+
+def standardize_inputs(rows: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """(rows - mean) / std for a trained network's inputs, (..., D); 0 in the columns that were
+    constant over the training rows (std at `STD_FLOOR`).
+
+    Such a column taught the network nothing: standardized it was 0 in every training row, so
+    its first-layer weights kept their random start. Divided by the floor, a new value there
+    (a stretch the training frames never showed, a skull motion where they held still) became
+    a huge input to those random weights: a synthesis network trained on frames of one held
+    expression (64 constant stretch columns of 379) put 158 cm offsets on a smile. Read as its
+    training value, such a column does not move the output.
+    """
+    z = (rows - mean) / std
+    constant = np.asarray(std) <= np.float32(STD_FLOOR)
+    if constant.any():
+        z[..., constant] = 0.0
+    return z
 
 
 def train_mlp(inputs: np.ndarray, targets: np.ndarray, *, hidden: list[int], epochs: int,

@@ -33,7 +33,7 @@ from .features import (dynamic_offsets, moving_average_target, rotate_elementwis
                        segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
                        skull_descriptor, skull_landmarks, stabilize_points, window_gather,
                        window_reach)
-from .networks import predict, single_thread, standardize_stats, train_mlp
+from .networks import predict, single_thread, standardize_inputs, standardize_stats, train_mlp
 from .propagate import cached_edges, cached_interpolation_matrix, propagate_offsets
 
 __all__ = ["HALO", "region_vertices", "topology_problem", "check_model", "locate_region", "model_edges",
@@ -326,7 +326,7 @@ def predict_removal(model: TorchModel, vertices: np.ndarray, skull: np.ndarray, 
     with single_thread():
         for f in range(len(b)):  # one call per frame: the same shapes whatever the chunk
             rows = np.concatenate([np.broadcast_to(b[f], (len(ids), b.shape[1])), x[f]], axis=1)
-            out[f] = predict(net, (rows - mean) / std) * norm["output_std"] + norm["output_mean"]
+            out[f] = predict(net, standardize_inputs(rows, mean, std)) * norm["output_std"] + norm["output_mean"]
     return out
 
 
@@ -371,7 +371,7 @@ class RemoveDynamics(Node):
     """Remove secondary dynamics from a capture with a trained removal network F."""
 
     type_name = "dynamics.RemoveDynamics"
-    version = 1
+    version = 2  # v2: input columns constant in F's training are read as their training value (standardize_inputs)
     kind = windowed(HALO)
 
     class Params(NodeParams):

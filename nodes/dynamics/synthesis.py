@@ -24,7 +24,7 @@ from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, JsonValue, MeshSeque
 from .features import (apply_rigid_elementwise, dynamic_offsets, rotate_elementwise,
                        segment_margin_mask, select_samples, skull_descriptor, skull_landmarks,
                        stabilize_points, stretch_stencil, surface_stretch, window_reach)
-from .networks import predict, single_thread, standardize_stats, train_mlp
+from .networks import predict, single_thread, standardize_inputs, standardize_stats, train_mlp
 from .propagate import cached_interpolation_matrix, propagate_offsets
 from .removal import HALO, _check_lists, _fps, check_model, model_edges, region_vertices
 
@@ -48,7 +48,7 @@ def predict_synthesis(model: TorchModel, quasistatic: np.ndarray, skull: np.ndar
     rows = synthesis_inputs(quasistatic, skull, neutral, norm["skull_landmarks"],
                             norm["stretch_stencil"], fps, int(cfg["window"]), float(cfg["feature_fps"]))
     net = model.build("cpu")
-    rows = (rows - norm["input_mean"]) / norm["input_std"]
+    rows = standardize_inputs(rows, norm["input_mean"], norm["input_std"])
     n = len(norm["sample_ids"])
     out = np.empty((len(rows), n, 3))
     with single_thread():
@@ -167,7 +167,7 @@ class SynthesizeDynamics(Node):
     """Add secondary dynamics for a skull motion to a quasistatic performance (network H)."""
 
     type_name = "dynamics.SynthesizeDynamics"
-    version = 1
+    version = 2  # v2: input columns constant in H's training are read as their training value (standardize_inputs)
     kind = windowed(HALO)
 
     class Params(NodeParams):

@@ -144,7 +144,7 @@ class TrainRemovalTakes(Node):
     """Train the removal network F on held-expression takes with the moving-average target (eq. 5)."""
 
     type_name = "dynamics.TrainRemovalTakes"
-    version = 1
+    version = 2  # v2: input columns constant in F's training are read as their training value (standardize_inputs) in the held-out error
     kind = SEQUENCE
     resources = {"gpu": 1}
 
@@ -278,7 +278,7 @@ class TrainSynthesisTakes(Node):
     """Train the synthesis network H as in the paper: quasistatic takes from F, their captures the target."""
 
     type_name = "dynamics.TrainSynthesisTakes"
-    version = 1
+    version = 2  # v2: input columns constant in F's training are read as their training value (standardize_inputs) in F's quasistatic takes
     kind = SEQUENCE
     resources = {"gpu": 1}
 
