@@ -74,6 +74,12 @@ class LoadModel(Node):
     def input_files(self, frames: range | None = None) -> list[Path]:
         return [Path(self.params.path) if self.params.path else BUNDLED_REMOVAL]
 
+    def check_plan(self, producers: dict) -> None:
+        """Before anything runs: the file is read, so a missing, unreadable or spoiled network
+        (wrong tensor shapes, float64 or NaN weights) is one refusal (exit 2) naming it, not a
+        failure after the capture was read and the rest of the graph ran."""
+        self.run()
+
     def peek_model(self) -> TorchModel | None:
         """The network, read while planning (for consumers' `check_plan`); None when unreadable
         (the run then reports why)."""
