@@ -182,6 +182,16 @@ class SynthesizeDynamics(Node):
     capture = Out(MeshSequence, doc="world-space performance with synthesized dynamics (cm)")
     offsets = Out(MeshSequence, doc="synthesized dynamic offsets per vertex, skull frame (cm)")
 
+    def check_plan(self, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs: a network read from a file (`peek_model`) that is not a
+        synthesis network (a removal network given as H) is one refusal, not one per chunk after
+        the performance was made."""
+        model_nodes = [n for n in producers.get("model", []) if hasattr(n, "peek_model")]
+        model = model_nodes[0].peek_model() if model_nodes else None
+        if model is not None and (model.architecture != "dynamics.MLP" or model.config.get("kind") != "synthesis"):
+            raise InputError("model", f"expected a dynamics.MLP synthesis network (dynamics.TrainSynthesis), found "
+                                      f"architecture '{model.architecture}' kind {model.config.get('kind')!r}")
+
     def run(self, quasistatic: MeshSequence, skull: RigidSequence, neutral: MeshSequence,
             model: TorchModel) -> dict:
         fps = _fps(self.params.fps, quasistatic)

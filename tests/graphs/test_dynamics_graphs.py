@@ -97,3 +97,19 @@ def test_retarget_graph_runs_and_reports(trained):
     assert synthesis.column("rms_mm")[1] < synthesis.column("rms_mm")[0], synthesis.format()
     with np.load(folder / "retargeted.npz") as saved:
         assert saved["vertices"].shape == (120, 400, 3)
+
+
+def test_retarget_graph_refuses_a_removal_network_as_h_before_anything_runs(tmp_path, capsys):
+    """A removal network given as the synthesis network is one refusal while planning (it was a
+    FAILED task in every chunk, after the performances were made: 95 s at load ~18)."""
+    from nodegraph.cli import main
+    from nodes.dynamics.files import BUNDLED_REMOVAL
+
+    code = main(["run", str(GRAPHS / "dynamics_retarget.json"), f"removal_model={BUNDLED_REMOVAL}",
+                 f"synthesis_model={BUNDLED_REMOVAL}", f"output={tmp_path / 'r.npz'}", "--no-cache",
+                 "--progress", "none"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "'synthesize'" in err and "synthesis network" in err and "kind 'removal'" in err, err
+    assert "FAILED" not in err and err.count("expected") == 1, err  # refused while planning, once
+    assert not (tmp_path / "r.npz").exists()
