@@ -37,8 +37,8 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward", "antialias_forward",
-           "antialias_backward"]
+__all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward", "shade_image",
+           "shade_image_backward", "antialias_forward", "antialias_backward", "project_forward", "project_backward"]
 
 _Y0, _Y1, _Y2A, _Y2B, _Y2C = 0.282094791773878, 0.488602511902920, 1.092548430592079, \
     0.315391565252520, 0.546274215296040
@@ -172,6 +172,36 @@ def _basis(x, y, z):  # pragma: no cover - compiled
             _Y2C * (x * x - y * y))
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _shade_one(pix2, dep, nrm, albedo, sh, one_albedo, one_sh, nv, b, r0, r1, r2, px, py):  # pragma: no cover
+    """Colour, perspective-correct barycentrics and depth of one covered pixel (module docstring)."""
+    x0, y0 = pix2[r0, 0], pix2[r0, 1]
+    x1, y1 = pix2[r1, 0], pix2[r1, 1]
+    x2, y2 = pix2[r2, 0], pix2[r2, 1]
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
+    l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+    l2 = 1.0 - l0 - l1
+    m0, m1, m2 = l0 / dep[r0], l1 / dep[r1], l2 / dep[r2]
+    s = m0 + m1 + m2
+    mu0, mu1, mu2 = m0 / s, m1 / s, m2 / s
+    ba = 0 if one_albedo else b
+    bs = 0 if one_sh else b
+    vx = mu0 * nrm[r0, 0] + mu1 * nrm[r1, 0] + mu2 * nrm[r2, 0]
+    vy = mu0 * nrm[r0, 1] + mu1 * nrm[r1, 1] + mu2 * nrm[r2, 1]
+    vz = mu0 * nrm[r0, 2] + mu1 * nrm[r1, 2] + mu2 * nrm[r2, 2]
+    r = max(math.sqrt(vx * vx + vy * vy + vz * vz), _NORMAL_EPS)
+    q1, q2, q3, q4, q5, q6, q7, q8 = _basis(vx / r, vy / r, vz / r)
+    c0, c1, c2 = r0 - b * nv, r1 - b * nv, r2 - b * nv
+    a = mu0 * albedo[ba, c0, 0] + mu1 * albedo[ba, c1, 0] + mu2 * albedo[ba, c2, 0]
+    red = a * _irradiance(sh, bs, 0, q1, q2, q3, q4, q5, q6, q7, q8)
+    a = mu0 * albedo[ba, c0, 1] + mu1 * albedo[ba, c1, 1] + mu2 * albedo[ba, c2, 1]
+    green = a * _irradiance(sh, bs, 1, q1, q2, q3, q4, q5, q6, q7, q8)
+    a = mu0 * albedo[ba, c0, 2] + mu1 * albedo[ba, c1, 2] + mu2 * albedo[ba, c2, 2]
+    blue = a * _irradiance(sh, bs, 2, q1, q2, q3, q4, q5, q6, q7, q8)
+    return red, green, blue, mu0, mu1, mu2, 1.0 / s
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_forward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
                           colour, mu_out, depth_out):  # pragma: no cover - compiled
@@ -183,29 +213,49 @@ def _shade_forward_kernel(pix, depth, normals, albedo, sh, pixels, corners, heig
     one_sh = sh.shape[0] == 1
     for n in range(pixels.shape[0]):
         b, r0, r1, r2, px, py = _corner_rows(pixels[n], corners, n, nv, height, width)
-        x0, y0 = pix2[r0, 0], pix2[r0, 1]
-        x1, y1 = pix2[r1, 0], pix2[r1, 1]
-        x2, y2 = pix2[r2, 0], pix2[r2, 1]
-        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
-        l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
-        l2 = 1.0 - l0 - l1
-        m0, m1, m2 = l0 / dep[r0], l1 / dep[r1], l2 / dep[r2]
-        s = m0 + m1 + m2
-        mu0, mu1, mu2 = m0 / s, m1 / s, m2 / s
-        depth_out[n] = 1.0 / s
-        mu_out[n, 0], mu_out[n, 1], mu_out[n, 2] = mu0, mu1, mu2
-        ba = 0 if one_albedo else b
-        bs = 0 if one_sh else b
-        vx = mu0 * nrm[r0, 0] + mu1 * nrm[r1, 0] + mu2 * nrm[r2, 0]
-        vy = mu0 * nrm[r0, 1] + mu1 * nrm[r1, 1] + mu2 * nrm[r2, 1]
-        vz = mu0 * nrm[r0, 2] + mu1 * nrm[r1, 2] + mu2 * nrm[r2, 2]
-        r = max(math.sqrt(vx * vx + vy * vy + vz * vz), _NORMAL_EPS)
-        q1, q2, q3, q4, q5, q6, q7, q8 = _basis(vx / r, vy / r, vz / r)
-        c0, c1, c2 = r0 - b * nv, r1 - b * nv, r2 - b * nv
-        for ch in range(3):
-            a = mu0 * albedo[ba, c0, ch] + mu1 * albedo[ba, c1, ch] + mu2 * albedo[ba, c2, ch]
-            colour[n, ch] = a * _irradiance(sh, bs, ch, q1, q2, q3, q4, q5, q6, q7, q8)
+        (colour[n, 0], colour[n, 1], colour[n, 2], mu_out[n, 0], mu_out[n, 1], mu_out[n, 2],
+         depth_out[n]) = _shade_one(pix2, dep, nrm, albedo, sh, one_albedo, one_sh, nv, b, r0, r1, r2, px, py)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, background,
+                        image, geometry):  # pragma: no cover - compiled
+    nv = depth.shape[1]
+    pix2 = pix.reshape(-1, 2)
+    dep = depth.reshape(-1)
+    nrm = normals.reshape(-1, 3)
+    one_albedo = albedo.shape[0] == 1
+    one_sh = sh.shape[0] == 1
+    size = height * width
+    one_bg_image = background.shape[0] == 1
+    one_bg_pixel = background.shape[1] == 1
+    for p in range(image.shape[0]):  # the background, coverage 0, geometry 0
+        bb = 0 if one_bg_image else p // size
+        q = 0 if one_bg_pixel else p - (p // size) * size
+        image[p, 0] = background[bb, q, 0]
+        image[p, 1] = background[bb, q, 1]
+        image[p, 2] = background[bb, q, 2]
+        image[p, 3] = 0.0
+        geometry[p, 0] = geometry[p, 1] = geometry[p, 2] = geometry[p, 3] = 0.0
+    for n in range(pixels.shape[0]):
+        p = pixels[n]
+        b, r0, r1, r2, px, py = _corner_rows(p, corners, n, nv, height, width)
+        (image[p, 0], image[p, 1], image[p, 2], geometry[p, 1], geometry[p, 2], geometry[p, 3],
+         geometry[p, 0]) = _shade_one(pix2, dep, nrm, albedo, sh, one_albedo, one_sh, nv, b, r0, r1, r2, px, py)
+        image[p, 3] = 1.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _gather_pixel_grads(g_image, g_geometry, pixels, g_colour, g_mu, g_depth):  # pragma: no cover - compiled
+    """The image / geometry gradients at the covered pixels (either may be empty: zeros)."""
+    has_image = g_image.shape[0] > 0
+    has_geometry = g_geometry.shape[0] > 0
+    for n in range(pixels.shape[0]):
+        p = pixels[n]
+        for c in range(3):
+            g_colour[n, c] = g_image[p, c] if has_image else 0.0
+            g_mu[n, c] = g_geometry[p, c + 1] if has_geometry else 0.0
+        g_depth[n] = g_geometry[p, 0] if has_geometry else 0.0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -373,6 +423,46 @@ def shade_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albe
     return grads + (grad_sh.astype(dt),)
 
 
+def shade_image(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo: np.ndarray, sh: np.ndarray,
+                pixels: np.ndarray, corners: np.ndarray, height: int, width: int, background: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """`shade_forward` written straight into B images over their background (one pass each,
+    no per-pixel temporaries or scatter afterwards).
+
+    Args:
+        pix, depth, normals, albedo, sh, pixels, corners, height, width: as `shade_forward`.
+        background: (B or 1, H * W or 1, 3) linear colour per image and pixel (or one for all),
+            the inputs' dtype, C-contiguous.
+    Returns:
+        image (B * H * W, 4): colour of the covered pixels, the background elsewhere, and
+        coverage (1 covered, 0 not); geometry (B * H * W, 4): depth (cm) and the 3
+        perspective-correct barycentrics of the covered pixels, 0 elsewhere.
+    """
+    dt = pix.dtype
+    npix = depth.shape[0] * height * width
+    image = np.empty((npix, 4), dt)
+    geometry = np.empty((npix, 4), dt)
+    _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, background, image,
+                        geometry)
+    return image, geometry
+
+
+def shade_image_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                         sh: np.ndarray, pixels: np.ndarray, corners: np.ndarray, height: int, width: int,
+                         g_image: np.ndarray | None, g_geometry: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """Gradients of `shade_image` w.r.t. pix, depth, normals, albedo and sh (as `shade_backward`)
+    given those w.r.t. its image and geometry ((B * H * W, 4) each, or None: zero). The coverage
+    channel is constant (no gradient); the background's gradient is the image's at the pixels
+    not covered (the caller's)."""
+    dt = pix.dtype
+    n = len(pixels)
+    empty = np.zeros((0, 4), dt)
+    g_colour, g_mu, g_depth = np.empty((n, 3), dt), np.empty((n, 3), dt), np.empty(n, dt)
+    _gather_pixel_grads(empty if g_image is None else g_image, empty if g_geometry is None else g_geometry,
+                        pixels, g_colour, g_mu, g_depth)
+    return shade_backward(pix, depth, normals, albedo, sh, pixels, corners, height, width, g_colour, g_mu, g_depth)
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sum_products(basis, g, pixels, image_size, one, out):  # pragma: no cover - compiled
     """out[b, j, c] += basis[n, j] g[n, c] over the pixels n of image b (all into out[0] when one)."""
@@ -506,3 +596,127 @@ def antialias_backward(colour: np.ndarray, pix: np.ndarray, faces: np.ndarray, h
     g_pix = np.zeros(pix.shape, pix.dtype)
     _antialias_backward_kernel(colour, pix, faces, height, width, occ, far, tri, edge, grad, g_colour, g_pix)
     return g_colour, g_pix
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _project_kernel(vertices, world_to_camera, intrinsics, distortion, pix, depth):  # pragma: no cover
+    has_distortion = distortion.shape[0] > 0
+    for b in range(vertices.shape[0]):
+        e = world_to_camera[b]
+        fx, fy, cx, cy = intrinsics[b, 0], intrinsics[b, 1], intrinsics[b, 2], intrinsics[b, 3]
+        k1 = distortion[b, 0] if has_distortion else 0.0
+        k2 = distortion[b, 1] if has_distortion else 0.0
+        for v in range(vertices.shape[1]):
+            px, py, pz = vertices[b, v, 0], vertices[b, v, 1], vertices[b, v, 2]
+            qx = px * e[0, 0] + py * e[0, 1] + pz * e[0, 2] + e[0, 3]
+            qy = px * e[1, 0] + py * e[1, 1] + pz * e[1, 2] + e[1, 3]
+            qz = px * e[2, 0] + py * e[2, 1] + pz * e[2, 2] + e[2, 3]
+            x, y = qx / qz, qy / qz
+            if has_distortion:
+                r2 = x * x + y * y
+                f = 1.0 + r2 * (k1 + k2 * r2)
+                x, y = x * f, y * f
+            pix[b, v, 0] = fx * x + cx
+            pix[b, v, 1] = fy * y + cy
+            depth[b, v] = qz
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _project_backward_kernel(vertices, world_to_camera, intrinsics, distortion, g_pix, g_depth, grad_v, grad_e,
+                             grad_k, grad_d):  # pragma: no cover - compiled
+    has_distortion = distortion.shape[0] > 0
+    has_pix = g_pix.shape[0] > 0
+    has_depth = g_depth.shape[0] > 0
+    for b in range(vertices.shape[0]):
+        e = world_to_camera[b]
+        fx, fy = intrinsics[b, 0], intrinsics[b, 1]
+        k1 = distortion[b, 0] if has_distortion else 0.0
+        k2 = distortion[b, 1] if has_distortion else 0.0
+        ge = np.zeros((3, 4))  # float64 sums over the vertices
+        gfx = gfy = gcx = gcy = gk1 = gk2 = 0.0
+        for v in range(vertices.shape[1]):
+            px, py, pz = vertices[b, v, 0], vertices[b, v, 1], vertices[b, v, 2]
+            qx = px * e[0, 0] + py * e[0, 1] + pz * e[0, 2] + e[0, 3]
+            qy = px * e[1, 0] + py * e[1, 1] + pz * e[1, 2] + e[1, 3]
+            qz = px * e[2, 0] + py * e[2, 1] + pz * e[2, 2] + e[2, 3]
+            x, y = qx / qz, qy / qz
+            gu = g_pix[b, v, 0] if has_pix else 0.0
+            gv = g_pix[b, v, 1] if has_pix else 0.0
+            gz = g_depth[b, v] if has_depth else 0.0
+            gx, gy = gu * fx, gv * fy  # u = fx xd + cx, v = fy yd + cy
+            if has_distortion:  # xd = x f, yd = y f, f = 1 + r2 (k1 + k2 r2)
+                r2 = x * x + y * y
+                f = 1.0 + r2 * (k1 + k2 * r2)
+                gfx += gu * x * f
+                gfy += gv * y * f
+                g_f = gx * x + gy * y
+                gk1 += g_f * r2
+                gk2 += g_f * r2 * r2
+                g_r2 = g_f * (k1 + 2.0 * k2 * r2)
+                gx, gy = gx * f + 2.0 * x * g_r2, gy * f + 2.0 * y * g_r2
+            else:
+                gfx += gu * x
+                gfy += gv * y
+            gcx += gu
+            gcy += gv
+            # x = qx / qz, y = qy / qz, depth = qz
+            gqx, gqy = gx / qz, gy / qz
+            gqz = gz - (gx * x + gy * y) / qz
+            grad_v[b, v, 0] = e[0, 0] * gqx + e[1, 0] * gqy + e[2, 0] * gqz
+            grad_v[b, v, 1] = e[0, 1] * gqx + e[1, 1] * gqy + e[2, 1] * gqz
+            grad_v[b, v, 2] = e[0, 2] * gqx + e[1, 2] * gqy + e[2, 2] * gqz
+            ge[0, 0] += gqx * px
+            ge[0, 1] += gqx * py
+            ge[0, 2] += gqx * pz
+            ge[0, 3] += gqx
+            ge[1, 0] += gqy * px
+            ge[1, 1] += gqy * py
+            ge[1, 2] += gqy * pz
+            ge[1, 3] += gqy
+            ge[2, 0] += gqz * px
+            ge[2, 1] += gqz * py
+            ge[2, 2] += gqz * pz
+            ge[2, 3] += gqz
+        for i in range(3):
+            for j in range(4):
+                grad_e[b, i, j] = ge[i, j]
+        grad_k[b, 0], grad_k[b, 1], grad_k[b, 2], grad_k[b, 3] = gfx, gfy, gcx, gcy
+        if has_distortion:
+            grad_d[b, 0], grad_d[b, 1] = gk1, gk2
+
+
+def project_forward(vertices: np.ndarray, world_to_camera: np.ndarray, intrinsics: np.ndarray,
+                    distortion: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection with radial distortion, as `geometry.camera.project_points_torch`.
+
+    Args:
+        vertices: (B, V, 3) world points, cm; world_to_camera: (B, 4, 4); intrinsics: (B, 4)
+            (fx, fy, cx, cy); distortion: (B, 2) (k1, k2) or None. One float dtype, C-contiguous.
+    Returns:
+        pix (B, V, 2) pixels and depth (B, V) camera-frame z, cm.
+    """
+    dt = vertices.dtype
+    pix = np.empty(vertices.shape[:2] + (2,), dt)
+    depth = np.empty(vertices.shape[:2], dt)
+    _project_kernel(vertices, world_to_camera, intrinsics, np.zeros((0, 2), dt) if distortion is None else distortion,
+                    pix, depth)
+    return pix, depth
+
+
+def project_backward(vertices: np.ndarray, world_to_camera: np.ndarray, intrinsics: np.ndarray,
+                     distortion: np.ndarray | None, g_pix: np.ndarray | None, g_depth: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Gradients of `project_forward` w.r.t. vertices (B, V, 3), world_to_camera (B, 4, 4; the
+    last row 0), intrinsics (B, 4) and distortion (B, 2) (None without), given those w.r.t.
+    pix and depth (None: zero)."""
+    dt = vertices.dtype
+    empty = np.zeros((0, 2), dt)
+    grad_v = np.empty(vertices.shape, dt)
+    grad_e = np.zeros(world_to_camera.shape, dt)
+    grad_k = np.empty(intrinsics.shape, dt)
+    grad_d = None if distortion is None else np.zeros(distortion.shape, dt)
+    _project_backward_kernel(vertices, world_to_camera, intrinsics, empty if distortion is None else distortion,
+                             empty.reshape(0, 0, 2) if g_pix is None else g_pix,
+                             empty.reshape(0, 0) if g_depth is None else g_depth, grad_v, grad_e, grad_k,
+                             empty if grad_d is None else grad_d)
+    return grad_v, grad_e, grad_k, grad_d

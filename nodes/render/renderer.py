@@ -56,7 +56,8 @@ from ..geometry.camera import project_points_torch
 from ..geometry.image import box_downsample
 from ..geometry.mesh import triangle_adjacency
 from .pixel_kernels import (antialias_backward, antialias_forward, normals_backward, normals_forward,
-                            shade_backward, shade_forward)
+                            project_backward, project_forward, shade_backward, shade_forward, shade_image,
+                            shade_image_backward)
 from .raster import rasterize_triangles, silhouette_pairs
 
 __all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals",
@@ -386,6 +387,80 @@ class _CompiledShade(torch.autograd.Function):
         return tuple(torch.from_numpy(g) for g in grads) + (None, None, None, None)
 
 
+class _CompiledProjection(torch.autograd.Function):
+    """Step 1 on the CPU: pixels and camera z of the vertices by `pixel_kernels.project_forward`
+    (one pass, the arithmetic of `project_points_torch`), with a hand-written backward to the
+    vertices, the camera, the intrinsics and the distortion."""
+
+    @staticmethod
+    def forward(ctx, vertices: Tensor, world_to_camera: Tensor, intrinsics: Tensor,  # type: ignore[override]
+                distortion: Tensor | None) -> tuple[Tensor, Tensor]:
+        ctx.set_materialize_grads(False)
+        arrays = tuple(None if t is None else t.detach().contiguous().numpy()
+                       for t in (vertices, world_to_camera, intrinsics, distortion))
+        ctx.arrays, ctx.dtype = arrays, vertices.dtype
+        pix, depth = project_forward(*arrays)
+        return torch.from_numpy(pix), torch.from_numpy(depth)
+
+    @staticmethod
+    def backward(ctx, g_pix: Tensor | None, g_depth: Tensor | None):  # type: ignore[override]
+        if g_pix is None and g_depth is None:
+            return None, None, None, None
+        grads = project_backward(*ctx.arrays, *(None if g is None else g.detach().to(ctx.dtype).contiguous().numpy()
+                                                for g in (g_pix, g_depth)))
+        return tuple(None if g is None else torch.from_numpy(g) for g in grads)
+
+
+class _CompiledImage(torch.autograd.Function):
+    """Steps 3-5 of the module docstring on the CPU as one autograd node: the covered pixels
+    shaded straight into the image over its background (`pixel_kernels.shade_image`), the
+    geometry buffer (depth, barycentrics) filled in the same pass, then the silhouette blends
+    (`antialias_forward`). The backward reads the image and geometry gradients at the covered
+    pixels and the blended pairs only (plus the background's at the uncovered pixels, when
+    the background needs one). Same arithmetic as `shade_pixels` + compositing + `_antialias`."""
+
+    @staticmethod
+    def forward(ctx, pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor,  # type: ignore[override]
+                background: Tensor, pixels: np.ndarray, corners: np.ndarray, faces: np.ndarray, height: int,
+                width: int, pairs: tuple[np.ndarray, ...] | None) -> tuple[Tensor, Tensor]:
+        ctx.set_materialize_grads(False)
+        arrays = tuple(t.detach().contiguous().numpy() for t in (pix, depth, normals, albedo, sh))
+        bg = background.detach().to(pix.dtype).contiguous().numpy()
+        image, geometry = shade_image(*arrays, pixels, corners, height, width, bg)
+        blended = antialias_forward(image, arrays[0], faces, height, width, *pairs) if pairs else image
+        ctx.arrays = arrays + (pixels, corners, height, width)
+        ctx.image, ctx.faces, ctx.pairs, ctx.bg_shape = image, faces, pairs, tuple(background.shape)
+        ctx.dtype = pix.dtype
+        shape = (depth.shape[0], height, width, 4)
+        return torch.from_numpy(blended).reshape(shape), torch.from_numpy(geometry).reshape(shape)
+
+    @staticmethod
+    def backward(ctx, g_image: Tensor | None, g_geometry: Tensor | None):  # type: ignore[override]
+        if g_image is None and g_geometry is None:
+            return (None,) * 12
+        arrays = ctx.arrays
+        pix = arrays[0]
+        g_colour = g_pix = None
+        if g_image is not None:
+            g_colour = g_image.detach().to(ctx.dtype).contiguous().numpy().reshape(-1, 4)
+            if ctx.pairs:
+                g_colour, g_pix = antialias_backward(ctx.image, pix, ctx.faces, arrays[7], arrays[8], *ctx.pairs,
+                                                     g_colour)
+        g_geo = None if g_geometry is None else g_geometry.detach().to(ctx.dtype).contiguous().numpy().reshape(-1, 4)
+        grads = list(shade_image_backward(*arrays, g_colour, g_geo))
+        if g_pix is not None:
+            grads[0] += g_pix
+        g_background = None
+        if ctx.needs_input_grad[5] and g_colour is not None:  # the image's gradient at the uncovered pixels
+            g = torch.from_numpy(g_colour[:, :3].copy())
+            g[torch.from_numpy(arrays[5])] = 0.0
+            g = g.reshape(arrays[1].shape[0], -1, 3)
+            g_background = g.sum(0, keepdim=True) if ctx.bg_shape[0] == 1 else g
+            if ctx.bg_shape[1] == 1:
+                g_background = g_background.sum(1, keepdim=True)
+        return tuple(torch.from_numpy(g) for g in grads) + (g_background,) + (None,) * 6
+
+
 def _shade_torch(pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor, pixels: Tensor,
                  corners: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
     """`shade_pixels` in torch ops (any device; autograd)."""
@@ -507,7 +582,7 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     if background.ndim == 1:
         if background.shape != (3,):
             raise ValueError(f"background: expected (3,) or (B, H, W, 3), found {tuple(background.shape)}")
-        background = background.expand(bsz, hs, ws, 3)
+        background_rows = background.reshape(1, 1, 3)  # (B or 1, H * W or 1, 3)
     else:
         if background.ndim != 4 or background.shape[0] not in (1, bsz) or \
                 tuple(background.shape[1:]) != (height, width, 3):
@@ -515,13 +590,19 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
                              f"{tuple(background.shape)}")
         if s > 1:
             background = background.repeat_interleave(s, 1).repeat_interleave(s, 2)
-        background = background.expand(bsz, hs, ws, 3)
+        background_rows = background.reshape(background.shape[0], hs * ws, 3)
     if s > 1:  # pixel centre convention: x_s = s (x + 1/2) - 1/2
         intrinsics = torch.cat([intrinsics[:, :2] * s, (intrinsics[:, 2:] + 0.5) * s - 0.5], -1)
 
-    # camera z of the vertices (B, V): the third row of T_camera_world
-    depth_v = (vertices @ world_to_camera[:, 2:3, :3].transpose(1, 2))[..., 0] + world_to_camera[:, 2:3, 3]
-    pix = project_points_torch(vertices, world_to_camera, intrinsics, distortion)  # (B, V, 2)
+    use_kernels = _compiled(dev, dt, compiled)
+    if distortion is not None:
+        distortion = torch.as_tensor(distortion, device=dev, dtype=dt)
+    if use_kernels and (distortion is None or tuple(distortion.shape) == (bsz, 2)):
+        pix, depth_v = _CompiledProjection.apply(vertices, world_to_camera, intrinsics, distortion)
+    else:
+        # camera z of the vertices (B, V): the third row of T_camera_world
+        depth_v = (vertices @ world_to_camera[:, 2:3, :3].transpose(1, 2))[..., 0] + world_to_camera[:, 2:3, 3]
+        pix = project_points_torch(vertices, world_to_camera, intrinsics, distortion)  # (B, V, 2)
     faces_np = faces_t.cpu().numpy()
     tri_np, z_np = rasterize_triangles(pix.detach().cpu().numpy(), depth_v.detach().cpu().numpy(),
                                        faces_np, hs, ws, near)
@@ -531,25 +612,37 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     idx_np = np.flatnonzero(tri_np.reshape(-1) >= 0)  # the covered pixels, ascending
     idx = torch.from_numpy(idx_np).to(dev)
     corners = torch.from_numpy(np.ascontiguousarray(faces_np, np.int64)[tri_np.reshape(-1)[idx_np]]).to(dev)
-    use_kernels = _compiled(dev, dt, compiled)
     normals = vertex_normals(vertices, faces_t, compiled=use_kernels)
-    shaded, mu, depth_p = shade_pixels(pix, depth_v, normals, albedo, sh, idx, corners, hs, ws,
-                                       compiled=use_kernels)
-
-    npix = bsz * hs * ws
-    # separate buffers: a loss on the image alone then never back-propagates through depth
-    # and barycentrics (slices of one shared buffer would each cost a full-size zero fill)
-    ones = torch.ones(len(idx), 1, device=dev, dtype=dt)
-    canvas = torch.cat([background.reshape(npix, 3), torch.zeros(npix, 1, device=dev, dtype=dt)], -1)
-    image = canvas.index_put((idx,), torch.cat([shaded, ones], -1)).reshape(bsz, hs, ws, 4)
-    geometry = torch.zeros(npix, 4, device=dev, dtype=dt).index_put(
-        (idx,), torch.cat([depth_p[:, None], mu], -1))
+    adj = None
     if antialias:
-        adj = triangle_adjacency(faces_t.cpu().numpy()) if adjacency is None else \
+        adj = triangle_adjacency(faces_np) if adjacency is None else \
             np.asarray(adjacency.cpu() if isinstance(adjacency, Tensor) else adjacency, np.int64)
-        image = _antialias(image, tri, zbuf, pix, faces_t, adj, use_kernels)
-    depth = geometry[:, 0].reshape(bsz, hs, ws)
-    bary = geometry[:, 1:4].reshape(bsz, hs, ws, 3)
+    if use_kernels:  # shading, compositing and blends in one pass each way (`_CompiledImage`)
+        faces_c = np.ascontiguousarray(faces_np, np.int64)
+        pairs = None
+        if antialias:
+            pairs = silhouette_pairs(tri_np, z_np, pix.detach().numpy(), faces_c, adj)
+            pairs = pairs if len(pairs[0]) else None
+        image, geometry = _CompiledImage.apply(pix, depth_v, normals, albedo, sh, background_rows, idx_np,
+                                               corners.numpy(), faces_c, hs, ws, pairs)
+        depth = geometry[..., 0]
+        bary = geometry[..., 1:4]
+    else:
+        shaded, mu, depth_p = shade_pixels(pix, depth_v, normals, albedo, sh, idx, corners, hs, ws,
+                                           compiled=False)
+        npix = bsz * hs * ws
+        # separate buffers: a loss on the image alone then never back-propagates through depth
+        # and barycentrics (slices of one shared buffer would each cost a full-size zero fill)
+        ones = torch.ones(len(idx), 1, device=dev, dtype=dt)
+        canvas = torch.cat([background_rows.expand(bsz, hs * ws, 3).reshape(npix, 3),
+                            torch.zeros(npix, 1, device=dev, dtype=dt)], -1)
+        image = canvas.index_put((idx,), torch.cat([shaded, ones], -1)).reshape(bsz, hs, ws, 4)
+        geometry = torch.zeros(npix, 4, device=dev, dtype=dt).index_put(
+            (idx,), torch.cat([depth_p[:, None], mu], -1))
+        if antialias:
+            image = _antialias(image, tri, zbuf, pix, faces_t, adj, False)
+        depth = geometry[:, 0].reshape(bsz, hs, ws)
+        bary = geometry[:, 1:4].reshape(bsz, hs, ws, 3)
     if s > 1:
         image = box_downsample(image, s)
         c = s // 2
