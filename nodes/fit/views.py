@@ -13,6 +13,7 @@ This module imports torch at the top: import it from node `run()` methods only.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import NamedTuple
@@ -181,6 +182,35 @@ def _plate_grids(views: FitViews, size: int) -> tuple[Tensor, Tensor, Tensor, in
     return k, origin, torch.stack([xs, ys], -1), max(r, 2)
 
 
+_LAST_RENDER = threading.local()  # per thread: the last render's inputs and output (`_render_mesh_reusing_last`)
+
+
+def _render_mesh_reusing_last(verts: Tensor, faces: np.ndarray, e: Tensor, k: Tensor, side: int, *,
+                              albedo: Tensor, sh: Tensor, background: Tensor, distortion: Tensor | None,
+                              supersample: int, adjacency: np.ndarray):
+    """`render_mesh` of the crops, returning the previous call's output (this thread's) when every
+    input is equal to it and no gradient is recorded: a fit round renders the same estimate
+    twice (with the plate's noise for the network, without it for the photometric samples),
+    and the noise is added after the render (`render_crops`)."""
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (verts, e, k, albedo, sh, background)):
+        return render_mesh(verts, faces, e, k, side, side, albedo=albedo, sh=sh, background=background,
+                           distortion=distortion, supersample=supersample, adjacency=adjacency)
+    tensors = (verts, e, k, albedo, sh, background, distortion)
+    values = (side, supersample)
+    last = getattr(_LAST_RENDER, "entry", None)
+    if last is not None and last[1] == values and last[3] is faces and last[4] is adjacency and all(
+            (a is None and b is None) or (a is not None and b is not None and a.shape == b.shape
+                                          and a.dtype == b.dtype and a.device == b.device and torch.equal(a, b))
+            for a, b in zip(last[0], tensors)):
+        return last[2]
+    with torch.no_grad():
+        out = render_mesh(verts, faces, e, k, side, side, albedo=albedo, sh=sh, background=background,
+                          distortion=distortion, supersample=supersample, adjacency=adjacency)
+    _LAST_RENDER.entry = (tuple(None if t is None else t.detach().clone() for t in tensors), values, out, faces,
+                          adjacency)
+    return out
+
+
 def render_crops(model: FitModel, views: FitViews, vertices: Tensor, *, size: int = MESH_SIZE,
                  supersample: int = 2) -> tuple[Tensor, Tensor, Tensor]:
     """Render every frame's head in every camera's crop box, as the network sees the plate.
@@ -217,9 +247,9 @@ def render_crops(model: FitModel, views: FitViews, vertices: Tensor, *, size: in
     off = (k - 1) / 2
     grid_k = torch.stack([intr[:, 0] / k, intr[:, 1] / k, (intr[:, 2] - off) / k - origin[:, 0],
                           (intr[:, 3] - off) / k - origin[:, 1]], -1)
-    out = render_mesh(verts, model.faces, e, grid_k, r, r, albedo=model.albedo, sh=model.sh,
-                      background=model.background, distortion=dist, supersample=supersample,
-                      adjacency=model.adjacency)
+    out = _render_mesh_reusing_last(verts, model.faces, e, grid_k, r, albedo=model.albedo, sh=model.sh,
+                                    background=model.background, distortion=dist, supersample=supersample,
+                                    adjacency=model.adjacency)
     # filtered plate pixels that exist: 0 <= origin + j < ceil(W / k)
     j = torch.arange(r, dtype=k.dtype, device=k.device)
     cam = torch.arange(c, device=k.device).repeat(b)
