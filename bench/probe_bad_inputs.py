@@ -1,6 +1,7 @@
 """Probe every shipped graph with bad inputs, as a new user would, and print a verdict table.
 
-    python bench/probe_bad_inputs.py [--long] [--only SUBSTRING] [--jobs N] [--keep DIR]
+    python bench/probe_bad_inputs.py [--long] [--only-long] [--only 'S1|S2'] [--start N --end M] [--jobs N]
+                                     [--keep DIR] [--log FILE]
 
 Each probe runs `nodegraph run graphs/<graph>.json ...` (or `validate`) in a subprocess, on tiny
 inputs made here (a 12-frame synthetic whole-head capture with known skull motion, 80x64 plates,
@@ -11,7 +12,13 @@ expects one of:
   and every input byte-identical, and no error line printed twice;
 - `run`: exit 0 (and, where given, a check of the answer against the known truth, e.g. the
   stabilization of 3 or 4 vertices against the synthetic capture's true skull motion);
-- `either`: a correct answer (exit 0 and the check) or a clean refusal (as `refuse`).
+- `either`: a correct answer (exit 0 and the check) or a clean refusal (as `refuse`);
+- `crash`: exit 1 from a node that raises as a bug would (a plugin node type made here), with
+  its traceback printed once however many chunks hit it (the README's promise), and the run's
+  outputs held back (the previous ones byte-identical).
+
+A refusal of an output path or a model file must also come before anything runs (`early`: no
+`FAILED` task line).
 
 The verdict is `ok` or `FAIL: why`. The table is printed as markdown: probe, exit code, the
 error's first line (or the answer's figure), verdict; the last line counts the failures. The
@@ -26,6 +33,7 @@ import concurrent.futures
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -55,6 +63,8 @@ class Probe:
     keep: bool = False  # outputs written by `setup` must stay unchanged (a failed run keeps them)
     long: bool = False
     timeout: float = 600.0
+    early: bool = False  # a refusal must come before anything runs (no FAILED task)
+    env: dict[str, str] = field(default_factory=dict)  # extra environment ("{in}" replaced)
 
 
 @dataclass
@@ -240,6 +250,42 @@ def make_inputs(folder: Path) -> dict:
     node = next(n for n, s in data["nodes"].items() if "hold_pose" in _params_of(s["type"]))
     data["nodes"][node].setdefault("params", {})["hold_pose"] = "yes"
     (folder / "hold_pose_yes.json").write_text(json.dumps(data))
+    data = json.loads((GRAPHS / "dynamics_train_captures.json").read_text())
+    data["nodes"]["stabilize"]["params"]["restabilize"] = "false"
+    (folder / "restabilize_false.json").write_text(json.dumps(data))
+    # a node type that fails as a bug would (exit 1), loaded as a plugin ($NODEGRAPH_PLUGINS)
+    (folder / "plugins").mkdir(exist_ok=True)
+    (folder / "plugins" / "probe_crash.py").write_text(
+        '"""A node that raises as a bug would, for bench/probe_bad_inputs.py."""\n'
+        "from nodegraph import FRAMEWISE, In, MeshSequence, Node, Out\n\n\n"
+        "class Crash(Node):\n"
+        '    """Divide by zero in every chunk."""\n\n'
+        '    type_name = "probe.Crash"\n'
+        "    version = 1\n"
+        "    kind = FRAMEWISE\n"
+        '    mesh = In(MeshSequence, doc="any mesh")\n'
+        '    out = Out(MeshSequence, doc="never made")\n\n'
+        "    def run(self, mesh):\n"
+        '        return {"out": mesh.num_frames // 0}\n')
+    (folder / "crash.json").write_text(json.dumps({
+        "schema": "nodegraph/1",
+        "nodes": {"load": {"type": "io.LoadMeshSequence", "type_version": 1, "params": {"path": "small.npz"}},
+                  "save": {"type": "io.SaveMeshSequence", "type_version": 1, "params": {"path": "m.npz"}},
+                  "crash": {"type": "probe.Crash", "type_version": 1, "params": {}}},
+        "edges": [["load.mesh", "save.mesh"], ["load.mesh", "crash.mesh"]],
+        "parameters": {"output": {"target": "save.path", "description": "the copy to write"}}}))
+    # takes long enough to train on a slice (dynamics_train_captures --frames): 2 held takes of
+    # the face region (200 points) with their skull motion, 60 and 120 frames at 120 fps
+    from nodes.synth.dynamics import simulate_dynamics
+
+    small_face = load_face_model(region="face", max_vertices=200)
+    (folder / "takes_long").mkdir(exist_ok=True)
+    for seed, (name, frames) in enumerate((("hold_a", 60), ("hold_b", 120))):
+        sim = simulate_dynamics(small_face, motions=["oscillate@8"], expressions=["smile"], segment_frames=frames,
+                                fps=120.0, seed=seed)
+        _save_npz(folder / "takes_long" / f"{name}.npz", vertices=sim.capture.vertices, faces=small_face.faces,
+                  fps=120.0, rigid=sim.skull.matrices)
+    _save_npz(folder / "neutral_long.npz", vertices=sim.neutral.vertices, faces=small_face.faces)
     (folder / "a_file").write_text("a file, not a folder")
     return {"head_rigid": rigid, "head_vertices": v[0]}
 
@@ -303,6 +349,16 @@ def _files_check(*names: str) -> Callable[[Path], str]:
     return check
 
 
+def _report_frames_check(removal_frames: int) -> Callable[[Path], str]:
+    """dynamics_train_captures' report: F trained on `removal_frames` frames (the slice asked for)."""
+    def check(out: Path) -> str:
+        report = json.loads((out / "r.json").read_text())["removal"]
+        found = report["frames"]
+        verdict = "" if found == removal_frames else f"wrong answer: expected {removal_frames} frames, "
+        return f"{verdict}F trained on {found} frames of {report['takes']}"
+    return check
+
+
 # -- the probes -----------------------------------------------------------------------------------
 
 def _write_previous(*names: str) -> Callable[[Path], None]:
@@ -346,6 +402,12 @@ def probes(facts: dict) -> list[Probe]:
         "--progress", "none")
     add("graph file missing", "", "run", "{in}/no_such_graph.json")
     add("validate a graph with \"hold_pose\": \"yes\"", "", "validate", "{in}/hold_pose_yes.json")
+    add("validate a graph with \"restabilize\": \"false\"", "", "validate", "{in}/restabilize_false.json")
+    add("--set stab.compile=yes", "stabilize", *st, "--set", "stab.compile=yes")
+    add("--set stab.compile=1", "stabilize", *st, "--set", "stab.compile=1")
+    add("a node raises (exit 1) in 4 chunks: its traceback once, nothing written", "", "run", "{in}/crash.json",
+        "output={out}/m.npz", "--chunk", "2", *S, expect="crash", setup=_write_previous("m.npz"), keep=True,
+        env={"NODEGRAPH_PLUGINS": "probe_crash", "PYTHONPATH": "{in}/plugins"})
     # stabilize.json: bad captures
     for name, text in [("garbage.npz", "garbage NPZ"), ("empty.npz", "empty file"), ("truncated.npz", "truncated NPZ"),
                        ("missing.npz", "missing file"), ("fps_negative.npz", "capture's own fps -30"),
@@ -421,6 +483,8 @@ def probes(facts: dict) -> list[Probe]:
     add("--frames 1:3", "livelink_to_render", "csv={in}/take.csv", *ll, "fps=30", "--frames", "1:3", expect=R,
         check=_files_check("render.0001.png", "render.0002.png"), timeout=900)
     add("--frames 4:20 past the 6 rows", "livelink_to_render", "csv={in}/take.csv", *ll, "fps=30", "--frames", "4:20")
+    add("failing run keeps the previous outputs (a NaN cell)", "livelink_to_render", "csv={in}/take_nan.csv", *ll,
+        setup=_write_previous("render.0000.png", "render.0001.png"), keep=True)
 
     # dynamics_remove.json
     dr = ["capture={in}/face.npz", "skull={in}/face.npz", "model=", "output={out}/q.npz"]
@@ -436,6 +500,8 @@ def probes(facts: dict) -> list[Probe]:
     add("capture of another topology, --chunk 2 (printed once)", "dynamics_remove", *dr,
         "capture={in}/small.npz", "skull={in}/small.npz", "--chunk", "2")
     add("capture's own fps -30", "dynamics_remove", *dr, "capture={in}/face_fps_negative.npz")
+    add("failing run keeps the previous outputs (a NaN skull frame, --chunk 2)", "dynamics_remove", *dr,
+        "skull={in}/skull_nan.npz", "--chunk", "2", setup=_write_previous("q.npz"), keep=True)
     add("capture of one frame", "dynamics_remove", *dr, "capture={in}/face_neutral.npz",
         "skull={in}/face.npz")
     for value in ("-1", "1e308", "nan"):
@@ -466,6 +532,18 @@ def probes(facts: dict) -> list[Probe]:
     add("fps=-1", "dynamics_train_captures", *dc, "fps=-1")
     add("report=.npz", "dynamics_train_captures", *dc, "report={out}/r.npz")
     add("model= a take", "dynamics_train_captures", *dc, "model={in}/takes/hold_a.npz")
+    add("neutral= a take (8 frames)", "dynamics_train_captures", *dc, "neutral={in}/takes/hold_a.npz")
+    add("failing run keeps the previous outputs (held_out=nosuch)", "dynamics_train_captures", *dc,
+        "held_out=nosuch", setup=_write_previous("f.safetensors", "h.safetensors", "r.json"), keep=True)
+    # --frames a:b: frames a:b of every take (takes of 60 and 120 frames; the last held take is held out)
+    dl = ["captures={in}/takes_long", "neutral={in}/neutral_long.npz", "model={out}/f.safetensors",
+          "synthesis_model={out}/h.safetensors", "report={out}/r.json", "epochs=1", "rows=2000", "samples=16",
+          "synthesis_samples=16", "synthesis_epochs=1"]
+    add("--frames 10:50 (F on hold_a 10:50)", "dynamics_train_captures", *dl, "--frames", "10:50", expect=R,
+        check=_report_frames_check(40))
+    add("--frames 60:120 (hold_a ends at 60: F on hold_b 60:120)", "dynamics_train_captures", *dl,
+        "--frames", "60:120", expect=R, check=_report_frames_check(60))
+    add("--frames 130:150 past every take", "dynamics_train_captures", *dl, "--frames", "130:150")
     rt = ["removal_model={in}/removal.safetensors", "synthesis_model={in}/removal.safetensors",
           "output={out}/r.npz"]
     add("synthesis_model= a removal network", "dynamics_retarget", *rt)
@@ -513,7 +591,8 @@ def probes(facts: dict) -> list[Probe]:
     add("usd=.obj", "video_to_animation", *va, "usd={out}/a.obj")
     add("gltf=.gltf", "video_to_animation", *va, "gltf={out}/a.gltf")
     add("usd and gltf at one path", "video_to_animation", *va, "usd={out}/a.usd", "gltf={out}/a.usd")
-    add("csv= the input plates' pattern file", "video_to_animation", *va, "csv={in}/take.csv")
+    add("a failing run leaves an existing csv= file untouched (no face in the plates)", "video_to_animation", *va,
+        "csv={in}/take.csv")
 
     # demo.json (validation, outputs)
     dm = ["html={out}/index.html", "report={out}/stab", "dynamics_report={out}/dyn", "fit_report={out}/fit",
@@ -537,13 +616,22 @@ def probes(facts: dict) -> list[Probe]:
     add("--frames 1:3 (no face in the plates)", "fit_video", "images={in}/plate.%04d.png", "output={out}/fit.npz",
         "report={out}/fit", "--frames", "1:3", expect="either", long=True, timeout=3600)
     tiny = ["epochs=1", "rows=2000", "samples=32", "synthesis_samples=32", "synthesis_epochs=1"]
-    add("--frames 0:4", "dynamics_train", *dt, *tiny, "--frames", "0:4", expect=R, long=True,
+    add("--frames 0:4", "dynamics_train", *dt, *tiny, "--frames", "0:4", expect="either", long=True,
+        check=_files_check("f.safetensors", "h.safetensors"), timeout=3600)  # 4 frames: nothing to train on
+    add("--frames 100:400", "dynamics_train", *dt, *tiny, "--frames", "100:400", expect=R, long=True,
         check=_files_check("f.safetensors", "h.safetensors"), timeout=3600)
     add("--frames 0:4", "dynamics_train_captures", *dc, "epochs=1", "samples=32", "synthesis_samples=32",
         "synthesis_epochs=1", "--frames", "0:4", expect="either", long=True, timeout=3600)
     add("--frames 0:20 (trained networks)", "dynamics_retarget", "removal_model={in}/removal.safetensors",
         "synthesis_model={in}/synthesis.safetensors", "output={out}/r.npz", "--frames", "0:20", expect="either",
         long=True, timeout=3600)
+    # a refused output path or model file is refused before anything runs (dynamics_retarget: every
+    # probe there is a model file or an output)
+    outputs = re.compile(r"(^|: )(output|report|model|synthesis_model|csv|usd|gltf|html|capture|truth_rigid|images)"
+                         r"(=| and| whose| under)|: model: ")
+    for probe in P:
+        if probe.expect == "refuse" and not probe.keep and (outputs.search(probe.name) or "dynamics_retarget" in probe.name):
+            probe.early = True
     return P
 
 
@@ -576,6 +664,9 @@ def run_probe(probe: Probe, inputs: Path, work: Path, index: int, inputs_before:
     before = _snapshot(out)
     argv = [a.replace("{in}", str(inputs)).replace("{out}", str(out)) for a in probe.argv]
     env = os.environ | {"PYTHONPATH": str(ROOT)}
+    for key, value in probe.env.items():
+        value = value.replace("{in}", str(inputs))
+        env[key] = f"{value}{os.pathsep}{env[key]}" if key == "PYTHONPATH" else value
     start = time.perf_counter()
     try:
         done = subprocess.run(["nice", *_nodegraph(), *argv], capture_output=True, text=True, env=env,
@@ -593,7 +684,21 @@ def run_probe(probe: Probe, inputs: Path, work: Path, index: int, inputs_before:
     if staged:
         problems.append(f"left staging folders {[str(p) for p in staged[:2]]}")
     refused = code == 2
-    if probe.expect == "run" or (probe.expect == "either" and not refused):
+    if probe.expect == "crash":
+        if code != 1:
+            problems.append(f"expected exit 1, found {code}")
+        # one traceback (with its chained causes) per distinct failure: its header once, its
+        # innermost frame (the plugin's raising line) once
+        headers = sum(line.startswith("traceback of ") for line in stderr.splitlines())
+        raising = stderr.count('probe_crash.py", line')
+        if "Traceback (most recent call last)" not in stderr or headers != 1 or raising != 1:
+            problems.append(f"expected the traceback printed once, found {headers} header(s), the raising "
+                            f"line {raising} time(s)")
+        if after != before:
+            changed = sorted(set(after.items()) ^ set(before.items()))
+            problems.append(f"outputs changed: {[c[0] for c in changed][:3]}")
+        message = next((line.strip() for line in stderr.splitlines() if "Error" in line), message)
+    elif probe.expect == "run" or (probe.expect == "either" and not refused):
         if code != 0:
             problems.append(f"expected exit 0{' or 2' if probe.expect == 'either' else ''}, found {code}")
         elif probe.check:
@@ -610,6 +715,8 @@ def run_probe(probe: Probe, inputs: Path, work: Path, index: int, inputs_before:
         lines = [line for line in stderr.splitlines() if line.strip() and ("expected" in line or "FAILED" in line)]
         if len(lines) != len(set(lines)):
             problems.append("the same error printed more than once")
+        if refused and probe.early and any(line.lstrip().startswith("FAILED") for line in stderr.splitlines()):
+            problems.append("refused only after running: expected the refusal before anything runs")
     if _snapshot(inputs) != inputs_before:
         problems.append("an input changed")
     verdict = "ok" if not problems else "FAIL: " + "; ".join(problems)
@@ -625,7 +732,8 @@ def main() -> int:
     parser.add_argument("--only-long", action="store_true", help="only the --long probes")
     parser.add_argument("--start", type=int, default=0, help="skip the first START short probes")
     parser.add_argument("--end", type=int, default=10 ** 6, help="stop before short probe END")
-    parser.add_argument("--only", default="", help="run the probes whose name contains this")
+    parser.add_argument("--only", default="", help="run the probes whose name contains this (or one of "
+                        "several separated by '|')")
     parser.add_argument("--jobs", type=int, default=2, help="probes run at once")
     parser.add_argument("--keep", default="", help="work folder to keep (default: a temporary one)")
     parser.add_argument("--log", default="", help="write every probe's stderr to this file")
@@ -635,7 +743,7 @@ def main() -> int:
     start = time.perf_counter()
     facts = make_inputs(inputs)
     chosen = [p for p in probes(facts) if (args.long or not p.long) and (p.long or not args.only_long)
-              and args.only in p.name]
+              and any(part in p.name for part in args.only.split("|"))]
     print(f"inputs made in {time.perf_counter() - start:.1f} s; {len(chosen)} probes; load {os.getloadavg()[0]:.1f}",
           file=sys.stderr)
     inputs_before = _snapshot(inputs)
@@ -654,7 +762,7 @@ def main() -> int:
                   file=sys.stderr)
     for i, p in enumerate(long_probes):  # one at a time: each uses every core
         if "dynamics_retarget" in p.name:  # needs a synthesis network: the one dynamics_train wrote
-            trained = [r for r in results if r.probe.name.startswith("dynamics_train: --frames")]
+            trained = [r for r in results if r.probe.name == "dynamics_train: --frames 100:400"]
             synthesis = work / f"out{len(short) + long_probes.index(trained[0].probe):03d}" / "h.safetensors" \
                 if trained else None
             if synthesis and synthesis.exists():
