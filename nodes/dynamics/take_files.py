@@ -23,6 +23,7 @@ from nodegraph import (SEQUENCE, InputError, MeshSequence, Node, NodeParams, Out
 from nodegraph.files import file_sha256
 from nodegraph.takes import Takes, cached_take
 
+from ..io._files import npz_shape
 from ..io.mesh import load_mesh_sequence, mesh_frame_count
 
 __all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "slice_takes", "LoadTakes", "LoadNeutral"]
@@ -180,6 +181,25 @@ class LoadTakes(Node):
             counts.append(int(count))
         return max(counts)
 
+    def peek_vertex_counts(self) -> dict[str, int]:
+        """Take name -> vertex count, from the headers of the NPZ takes (read while planning, for
+        consumers' `check_plan`); takes of other formats, and unreadable ones, are left out (the
+        run reports them)."""
+        counts = {}
+        try:
+            found = find_takes(self.params.captures)
+        except InputError:
+            return {}
+        for name, path, _ in found:
+            if path.lower().endswith(".npz"):
+                try:
+                    shape = npz_shape(path, "vertices")[0]
+                except (KeyError, ValueError, OSError, zipfile.BadZipFile):
+                    continue
+                if len(shape) == 3:
+                    counts[name] = int(shape[1])
+        return counts
+
     def input_files(self, frames: range | None = None) -> list[Path]:
         try:
             return [f for _, _, files in find_takes(self.params.captures) for f in files]
@@ -242,7 +262,16 @@ class LoadNeutral(Node):
     def check_plan(self, producers: dict[str, list[Node]]) -> None:
         """Before anything runs: the file is read (one frame), so a missing or unreadable neutral,
         or one of several frames without `frame`, is one refusal."""
-        self._read()
+        self._planned_vertices = self._read().num_vertices
+
+    def peek_vertex_count(self) -> int | None:
+        """The neutral's vertex count, read while planning (None when unreadable)."""
+        if getattr(self, "_planned_vertices", None) is None:
+            try:
+                self._planned_vertices = self._read().num_vertices
+            except (InputError, OSError, ValueError):
+                return None
+        return self._planned_vertices
 
     def _read(self) -> MeshSequence:
         p = self.params

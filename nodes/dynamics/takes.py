@@ -96,6 +96,20 @@ class StabilizeTakes(Node):
     stabilized = Out(Takes, doc="The takes, each with skull-to-world transforms (skull frame = the neutral's).")
     report = Out(JsonValue, doc="Per take: 'tracked' or 'mode pursuit' and the fit's median residual (cm).")
 
+    def check_plan(self, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs: when the takes come from dynamics.LoadTakes and the neutral from
+        a reader that knows its vertex count, a take of another vertex count than the neutral is
+        one refusal (NPZ headers only), not a failure after every take was read."""
+        takes = [n for n in producers.get("takes", []) if hasattr(n, "peek_vertex_counts")]
+        neutral = [n for n in producers.get("neutral", []) if hasattr(n, "peek_vertex_count")]
+        count = neutral[0].peek_vertex_count() if neutral else None
+        if not takes or count is None:
+            return
+        for name, found in takes[0].peek_vertex_counts().items():
+            if found != count:
+                raise InputError("neutral", f"expected one frame of {found} vertices (the takes' topology and "
+                                            f"vertex order: take '{name}' has {found}), found {count} vertices")
+
     def run(self, takes: Takes, neutral: MeshSequence) -> dict:
         p = self.params
         rest = check_neutral(neutral, takes)

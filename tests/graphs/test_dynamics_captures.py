@@ -101,3 +101,25 @@ def test_train_captures_graph_learns_in_any_vertex_order_and_cleans_another_take
     before, after = rms_distance(test.capture.vertices[:, order], truth), rms_distance(removed, truth)
     print(f"takes network on frown at 9 Hz: RMS {10 * before:.3f} -> {10 * after:.3f} mm; held out {data['held_out']}")
     assert after < 0.6 * before, (before, after)
+
+
+def test_train_captures_graph_refuses_a_neutral_of_another_topology_before_anything_runs(tmp_path, capsys):
+    """Read from the NPZ headers while planning: one exit 2 naming the take, not a failure after
+    every take was read (it was a FAILED dynamics.StabilizeTakes task)."""
+    from nodegraph.cli import main
+
+    face = load_face_model(region="face", max_vertices=60)
+    (tmp_path / "takes").mkdir()
+    rng = np.random.default_rng(0)
+    np.savez(tmp_path / "takes" / "hold_a.npz", faces=face.faces, fps=120.0,
+             vertices=(face.neutral[None] + rng.normal(scale=0.01, size=(30, 60, 3))).astype(np.float32))
+    np.savez(tmp_path / "neutral.npz", vertices=face.neutral[None, :50].astype(np.float32))
+    code = main(["run", str(GRAPHS / "dynamics_train_captures.json"), f"captures={tmp_path / 'takes'}",
+                 f"neutral={tmp_path / 'neutral.npz'}", f"model={tmp_path / 'f.safetensors'}",
+                 f"synthesis_model={tmp_path / 'h.safetensors'}", f"report={tmp_path / 'r.json'}", "--no-cache",
+                 "--progress", "none"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "'stabilize'" in err and "'neutral'" in err and "take 'hold_a' has 60" in err and "found 50" in err, err
+    assert "FAILED" not in err and err.count("expected") == 1, err
+    assert not (tmp_path / "f.safetensors").exists() and not (tmp_path / "r.json").exists()
