@@ -37,6 +37,8 @@ import math
 import numba
 import numpy as np
 
+from .halves import run_halves
+
 __all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward", "shade_image",
            "shade_image_backward", "antialias_forward", "antialias_backward", "project_forward", "project_backward"]
 
@@ -219,7 +221,8 @@ def _shade_forward_kernel(pix, depth, normals, albedo, sh, pixels, corners, heig
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, background,
-                        image, geometry):  # pragma: no cover - compiled
+                        image, geometry, p_lo, p_hi, n_lo, n_hi):  # pragma: no cover - compiled
+    """Image pixels p_lo..p_hi - 1, of which covered pixels n_lo..n_hi - 1 (of `pixels`)."""
     nv = depth.shape[1]
     pix2 = pix.reshape(-1, 2)
     dep = depth.reshape(-1)
@@ -229,7 +232,7 @@ def _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height
     size = height * width
     one_bg_image = background.shape[0] == 1
     one_bg_pixel = background.shape[1] == 1
-    for p in range(image.shape[0]):  # the background, coverage 0, geometry 0
+    for p in range(p_lo, p_hi):  # the background, coverage 0, geometry 0
         bb = 0 if one_bg_image else p // size
         q = 0 if one_bg_pixel else p - (p // size) * size
         image[p, 0] = background[bb, q, 0]
@@ -237,7 +240,7 @@ def _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height
         image[p, 2] = background[bb, q, 2]
         image[p, 3] = 0.0
         geometry[p, 0] = geometry[p, 1] = geometry[p, 2] = geometry[p, 3] = 0.0
-    for n in range(pixels.shape[0]):
+    for n in range(n_lo, n_hi):
         p = pixels[n]
         b, r0, r1, r2, px, py = _corner_rows(p, corners, n, nv, height, width)
         (image[p, 0], image[p, 1], image[p, 2], geometry[p, 1], geometry[p, 2], geometry[p, 3],
@@ -258,10 +261,24 @@ def _gather_pixel_grads(g_image, g_geometry, pixels, g_colour, g_mu, g_depth):  
         g_depth[n] = g_geometry[p, 0] if has_geometry else 0.0
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _add_sh_grad(grad_sh, bs, c, g, q1, q2, q3, q4, q5, q6, q7, q8):  # pragma: no cover - compiled
+    grad_sh[bs, 0, c] += _Y0 * g
+    grad_sh[bs, 1, c] += q1 * g
+    grad_sh[bs, 2, c] += q2 * g
+    grad_sh[bs, 3, c] += q3 * g
+    grad_sh[bs, 4, c] += q4 * g
+    grad_sh[bs, 5, c] += q5 * g
+    grad_sh[bs, 6, c] += q6 * g
+    grad_sh[bs, 7, c] += q7 * g
+    grad_sh[bs, 8, c] += q8 * g
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
                            g_colour, g_mu, g_depth, grad_pix, grad_depth, grad_normals, grad_albedo,
-                           basis_out, g_irr_out):  # pragma: no cover - compiled
+                           grad_sh, n_lo, n_hi):  # pragma: no cover - compiled
+    """Covered pixels n_lo..n_hi - 1; grad_sh (B or 1, 9, 3) float64."""
     nv = depth.shape[1]
     pix2 = pix.reshape(-1, 2)
     dep = depth.reshape(-1)
@@ -271,7 +288,7 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
     gn2 = grad_normals.reshape(-1, 3)
     one_albedo = albedo.shape[0] == 1
     one_sh = sh.shape[0] == 1
-    for n in range(pixels.shape[0]):
+    for n in range(n_lo, n_hi):
         b, r0, r1, r2, px, py = _corner_rows(pixels[n], corners, n, nv, height, width)
         x0, y0 = pix2[r0, 0], pix2[r0, 1]
         x1, y1 = pix2[r1, 0], pix2[r1, 1]
@@ -312,10 +329,9 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
         ga0 = gc0 * _irradiance(sh, bs, 0, q1, q2, q3, q4, q5, q6, q7, q8)
         ga1 = gc1 * _irradiance(sh, bs, 1, q1, q2, q3, q4, q5, q6, q7, q8)
         ga2 = gc2 * _irradiance(sh, bs, 2, q1, q2, q3, q4, q5, q6, q7, q8)
-        basis_out[n, 0] = _Y0
-        basis_out[n, 1], basis_out[n, 2], basis_out[n, 3], basis_out[n, 4] = q1, q2, q3, q4
-        basis_out[n, 5], basis_out[n, 6], basis_out[n, 7], basis_out[n, 8] = q5, q6, q7, q8
-        g_irr_out[n, 0], g_irr_out[n, 1], g_irr_out[n, 2] = ge0, ge1, ge2
+        _add_sh_grad(grad_sh, bs, 0, ge0, q1, q2, q3, q4, q5, q6, q7, q8)  # d colour_c / d sh[j, c] = Y_j a_c
+        _add_sh_grad(grad_sh, bs, 1, ge1, q1, q2, q3, q4, q5, q6, q7, q8)
+        _add_sh_grad(grad_sh, bs, 2, ge2, q1, q2, q3, q4, q5, q6, q7, q8)
         gq1 = sh[bs, 1, 0] * ge0 + sh[bs, 1, 1] * ge1 + sh[bs, 1, 2] * ge2
         gq2 = sh[bs, 2, 0] * ge0 + sh[bs, 2, 1] * ge1 + sh[bs, 2, 2] * ge2
         gq3 = sh[bs, 3, 0] * ge0 + sh[bs, 3, 1] * ge1 + sh[bs, 3, 2] * ge2
@@ -413,14 +429,20 @@ def shade_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albe
     """
     dt = pix.dtype
     n = len(pixels)
-    grads = (np.zeros(pix.shape, dt), np.zeros(depth.shape, dt), np.zeros(normals.shape, dt),
-             np.zeros(albedo.shape, dt))
-    basis, g_irradiance = np.empty((n, 9), dt), np.empty((n, 3), dt)
-    _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
-                           g_colour, g_mu, g_depth, *grads, basis, g_irradiance)
-    grad_sh = np.zeros(sh.shape, np.float64)  # d colour_c / d sh[j, c] = Y_j a_c, summed per image
-    _sum_products(basis, g_irradiance, pixels, height * width, sh.shape[0] == 1, grad_sh)
-    return grads + (grad_sh.astype(dt),)
+
+    def half(n_lo: int, n_hi: int) -> list[np.ndarray]:
+        grads = [np.zeros(pix.shape, dt), np.zeros(depth.shape, dt), np.zeros(normals.shape, dt),
+                 np.zeros(albedo.shape, dt), np.zeros(sh.shape, np.float64)]
+        _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+                               g_colour, g_mu, g_depth, *grads, n_lo, n_hi)
+        return grads
+
+    # two fixed halves of the pixels, each scattering into its own buffers, added in one order
+    # (`halves`: the same bits on one thread or two)
+    first, second = run_halves(lambda: half(0, n // 2), lambda: half(n // 2, n), n)
+    for a, b in zip(first, second):
+        a += b
+    return tuple(first[:4]) + (first[4].astype(dt),)
 
 
 def shade_image(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo: np.ndarray, sh: np.ndarray,
@@ -442,8 +464,12 @@ def shade_image(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo:
     npix = depth.shape[0] * height * width
     image = np.empty((npix, 4), dt)
     geometry = np.empty((npix, 4), dt)
-    _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, background, image,
-                        geometry)
+    p_mid = npix // 2  # two halves of the image (disjoint writes; `halves`)
+    n_mid = int(np.searchsorted(pixels, p_mid))
+    run_halves(lambda: _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, background,
+                                           image, geometry, 0, p_mid, 0, n_mid),
+               lambda: _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width, background,
+                                           image, geometry, p_mid, npix, n_mid, len(pixels)), len(pixels))
     return image, geometry
 
 
@@ -461,16 +487,6 @@ def shade_image_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray
     _gather_pixel_grads(empty if g_image is None else g_image, empty if g_geometry is None else g_geometry,
                         pixels, g_colour, g_mu, g_depth)
     return shade_backward(pix, depth, normals, albedo, sh, pixels, corners, height, width, g_colour, g_mu, g_depth)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sum_products(basis, g, pixels, image_size, one, out):  # pragma: no cover - compiled
-    """out[b, j, c] += basis[n, j] g[n, c] over the pixels n of image b (all into out[0] when one)."""
-    for n in range(basis.shape[0]):
-        b = 0 if one else pixels[n] // image_size
-        for j in range(9):
-            for c in range(3):
-                out[b, j, c] += basis[n, j] * g[n, c]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")

@@ -23,6 +23,8 @@ import threading
 import numba
 import numpy as np
 
+from .halves import run_halves
+
 __all__ = ["rasterize_triangles", "silhouette_pairs", "WALK_STEPS"]
 
 WALK_STEPS = 8
@@ -31,7 +33,8 @@ WALK_STEPS = 8
 
 
 @numba.njit(cache=True, nogil=True)
-def _raster_kernel(pix, depth, faces, near, tri_out, z_out):  # pragma: no cover - compiled
+def _raster_kernel(pix, depth, faces, near, tri_out, z_out, row_lo, row_hi):  # pragma: no cover - compiled
+    """Rows row_lo..row_hi - 1 of every image (a band: two bands write disjoint rows)."""
     batch, height, width = tri_out.shape
     for b in range(batch):
         for t in range(faces.shape[0]):
@@ -52,12 +55,12 @@ def _raster_kernel(pix, depth, faces, near, tri_out, z_out):  # pragma: no cover
             area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
             if not (area != 0.0 and np.isfinite(area)):
                 continue
-            if xb < 0.0 or yb < 0.0 or xa > width - 1 or ya > height - 1:
+            if xb < 0.0 or yb < row_lo or xa > width - 1 or ya > row_hi - 1:
                 continue
             xmin = max(int(np.ceil(xa)), 0)
             xmax = min(int(np.floor(xb)), width - 1)
-            ymin = max(int(np.ceil(ya)), 0)
-            ymax = min(int(np.floor(yb)), height - 1)
+            ymin = max(int(np.ceil(ya)), row_lo)
+            ymax = min(int(np.floor(yb)), row_hi - 1)
             inv = 1.0 / area
             iz0, iz1, iz2 = 1.0 / z0, 1.0 / z1, 1.0 / z2
             for py in range(ymin, ymax + 1):
@@ -110,8 +113,11 @@ def rasterize_triangles(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, h
                          f"{int(faces.min())}..{int(faces.max())}")
     tri = np.full((pix.shape[0], height, width), -1, np.int32)
     zbuf = np.full((pix.shape[0], height, width), np.inf, np.float64)
-    if faces.size:
-        _raster_kernel(pix, depth, faces, float(near), tri, zbuf)
+    if faces.size:  # two bands of rows (the same buffers whichever ran where: see `halves`)
+        half = height // 2
+        run_halves(lambda: _raster_kernel(pix, depth, faces, float(near), tri, zbuf, 0, half),
+                   lambda: _raster_kernel(pix, depth, faces, float(near), tri, zbuf, half, height),
+                   pix.shape[0] * max(height * width, len(faces)))
     return tri, zbuf
 
 
@@ -197,21 +203,28 @@ def _walk_distance(pix, b, faces, adjacency, start, items, steps, facing, dist, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, prune, start, items, occ_out, far_out, tri_out,
-                  edge_out):  # pragma: no cover - compiled
+def _walk_kernel(pix, b, faces, adjacency, steps, prune, start, items, facing, dist):  # pragma: no cover
+    """`facing` (and with `prune` the walk distance `dist`) of image b's triangles."""
+    if prune:  # O(triangles): worth it when there are more pixels than triangles
+        _walk_distance(pix, b, faces, adjacency, start, items, steps, facing, dist, np.empty(faces.shape[0], np.int64))
+    else:
+        _facing(pix, b, faces, facing)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, prune, start, items, b_lo, b_hi, axis_lo, axis_hi,
+                  facing, dist, walked, occ_out, far_out, tri_out, edge_out):  # pragma: no cover - compiled
+    """Pairs of images b_lo..b_hi - 1 along axes axis_lo..axis_hi - 1 (0: horizontal pairs, 1:
+    vertical), in that order; `walked`: `facing` and `dist` already hold image b_lo's
+    (`_walk_kernel`), else they are computed here per image."""
     batch, height, width = tri.shape
     count = 0
     lo = np.zeros(3)
     lf = np.zeros(3)
-    facing = np.zeros(faces.shape[0], np.bool_)
-    dist = np.zeros(faces.shape[0], np.int64)
-    queue = np.empty(faces.shape[0], np.int64)
-    for b in range(batch):
-        if prune:  # O(triangles): worth it when there are more pixels than triangles
-            _walk_distance(pix, b, faces, adjacency, start, items, steps, facing, dist, queue)
-        else:
-            _facing(pix, b, faces, facing)
-        for axis in range(2):  # 0: horizontal pairs, 1: vertical pairs
+    for b in range(b_lo, b_hi):
+        if not walked:
+            _walk_kernel(pix, b, faces, adjacency, steps, prune, start, items, facing, dist)
+        for axis in range(axis_lo, axis_hi):
             for y in range(height - axis):
                 for x in range(width - 1 + axis):
                     y2, x2 = y + axis, x + 1 - axis
@@ -289,16 +302,42 @@ def silhouette_pairs(triangle: np.ndarray, zbuffer: np.ndarray, pix: np.ndarray,
         edge: (M,) int64 the corner (0..2) opposite that edge.
     """
     tri = np.ascontiguousarray(triangle, np.int64)
-    size = 2 * tri.size + 1
-    occ, far = np.empty(size, np.int64), np.empty(size, np.int64)
-    t_out, e_out = np.empty(size, np.int64), np.empty(size, np.int64)
-    adjacency = np.ascontiguousarray(adjacency, np.int64)
-    prune = tri.shape[1] * tri.shape[2] >= len(faces)
+    return _find_pairs(tri, np.ascontiguousarray(zbuffer, np.float64), np.ascontiguousarray(pix, np.float64),
+                       np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(adjacency, np.int64), int(steps),
+                       tri.shape[1] * tri.shape[2] >= len(faces))
+
+
+def _find_pairs(tri: np.ndarray, zbuf: np.ndarray, pix: np.ndarray, faces: np.ndarray, adjacency: np.ndarray,
+                steps: int, prune: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`silhouette_pairs` in two halves (`halves.run_halves`): one image's horizontal and vertical
+    pairs after its walk distances, or the first and second half of a batch's images; the
+    halves' pairs are concatenated in the order one pass would find them."""
+    batch = tri.shape[0]
     start, items = reverse_adjacency(adjacency) if prune else (np.zeros(1, np.int64), np.zeros(0, np.int64))
-    n = _pairs_kernel(tri, np.ascontiguousarray(zbuffer, np.float64), np.ascontiguousarray(pix, np.float64),
-                      np.ascontiguousarray(faces, np.int64), adjacency, int(steps), prune, start, items,
-                      occ, far, t_out, e_out)
-    return occ[:n].copy(), far[:n].copy(), t_out[:n].copy(), e_out[:n].copy()
+    ntri = len(faces)
+
+    def half(b_lo: int, b_hi: int, axis_lo: int, axis_hi: int, facing: np.ndarray | None, dist: np.ndarray | None):
+        size = (b_hi - b_lo) * (axis_hi - axis_lo) * tri.shape[1] * tri.shape[2] + 1
+        outs = [np.empty(size, np.int64) for _ in range(4)]
+        walked = facing is not None
+        if facing is None:
+            facing, dist = np.zeros(ntri, np.bool_), np.zeros(ntri, np.int64)
+        n = _pairs_kernel(tri, zbuf, pix, faces, adjacency, steps, prune, start, items, b_lo, b_hi, axis_lo, axis_hi,
+                          facing, dist, walked, *outs)
+        return [a[:n] for a in outs]
+
+    work = tri.size
+    if batch == 1:
+        facing, dist = np.zeros(ntri, np.bool_), np.zeros(ntri, np.int64)
+        _walk_kernel(pix, 0, faces, adjacency, steps, prune, start, items, facing, dist)
+        first, second = run_halves(lambda: half(0, 1, 0, 1, facing, dist), lambda: half(0, 1, 1, 2, facing, dist),
+                                   work)
+    else:
+        mid = batch // 2
+        first, second = run_halves(lambda: half(0, mid, 0, 2, None, None), lambda: half(mid, batch, 0, 2, None, None),
+                                   work)
+    occ, far, t_out, e_out = (np.concatenate([a, b]) for a, b in zip(first, second))
+    return occ, far, t_out, e_out
 
 
 _REVERSE_CACHE: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []

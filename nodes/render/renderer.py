@@ -606,7 +606,7 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
     faces_np = faces_t.cpu().numpy()
     tri_np, z_np = rasterize_triangles(pix.detach().cpu().numpy(), depth_v.detach().cpu().numpy(),
                                        faces_np, hs, ws, near)
-    tri = torch.from_numpy(tri_np).to(dev).long()
+    tri = torch.from_numpy(tri_np.astype(np.int64)).to(dev)
     zbuf = torch.from_numpy(z_np).to(dev)
 
     idx_np = np.flatnonzero(tri_np.reshape(-1) >= 0)  # the covered pixels, ascending

@@ -140,12 +140,8 @@ def test_pruned_silhouette_walk_finds_the_same_pairs(rng):
     for tri, zbuf, pix in cases:
         outs = []
         for prune in (False, True):
-            size = 2 * tri.size + 1
-            arrays = [np.empty(size, np.int64) for _ in range(4)]
-            start, items = raster.reverse_adjacency(adjacency)
-            n = raster._pairs_kernel(tri.astype(np.int64), zbuf, np.ascontiguousarray(pix, np.float64), faces,
-                                     adjacency, raster.WALK_STEPS, prune, start, items, *arrays)
-            outs.append([a[:n] for a in arrays])
+            outs.append(raster._find_pairs(tri.astype(np.int64), zbuf, np.ascontiguousarray(pix, np.float64), faces,
+                                           adjacency, raster.WALK_STEPS, prune))
         for a, b in zip(*outs):
             np.testing.assert_array_equal(a, b)
         found += len(outs[0][0])
@@ -190,3 +186,25 @@ def test_compiled_projection_passes_gradcheck(rng):
                                                                                   dtype=torch.float64)))
     assert torch.autograd.gradcheck(lambda *a: renderer._CompiledProjection.apply(*a), leaves)
     assert torch.autograd.gradcheck(lambda *a: renderer._CompiledProjection.apply(*a, None), leaves[:3])
+
+
+def test_two_threads_give_the_same_bits_as_one(rng, monkeypatch):
+    # the kernels' fixed halves run side by side with 2+ torch threads and one after the other
+    # with 1: images, buffers and gradients must be identical, float32 and float64, batch 1 and 2
+    from nodes.render import halves
+
+    monkeypatch.setattr(halves, "MIN_PARALLEL_WORK", 0)
+    before = torch.get_num_threads()
+    for batch, dtype in ((1, torch.float32), (2, torch.float64)):
+        verts, faces, e, k = _bumpy_sphere(rng, batch, dtype)
+        albedo = torch.as_tensor(rng.uniform(0.2, 1, (1, verts.shape[1], 3)), dtype=dtype)
+        sh = torch.as_tensor(sh_from_lights(0.4, (0.3, -0.5, -1.0), 0.8), dtype=dtype)[None]
+        runs = []
+        try:
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                runs.append(_render_both(verts, faces, e, k, albedo, sh, supersample=2)[0])
+        finally:
+            torch.set_num_threads(before)
+        for a, b in zip(*runs):
+            assert torch.equal(a, b)
