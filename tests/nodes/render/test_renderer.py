@@ -257,7 +257,7 @@ def test_render_cuda_matches_cpu():
     verts, faces, world_to_camera, intr, albedo, sh, weights = _scene(torch.float32)
     outs, grads = [], []
     for device in ("cpu", "cuda"):
-        v = verts.to(device).requires_grad_()
+        v = verts.detach().to(device).requires_grad_()  # a leaf on each device
         out = render_mesh(v, faces, world_to_camera.to(device), intr.to(device), 48, 48,
                           albedo=albedo.to(device), sh=sh.to(device))
         (out.image * weights.to(device)).sum().backward()
