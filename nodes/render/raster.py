@@ -63,8 +63,15 @@ def _raster_kernel(pix, depth, faces, near, tri_out, z_out, row_lo, row_hi):  # 
             ymax = min(int(np.floor(yb)), row_hi - 1)
             inv = 1.0 / area
             iz0, iz1, iz2 = 1.0 / z0, 1.0 / z1, 1.0 / z2
+            # no point of the triangle is nearer than its nearest corner (1 / z is a convex
+            # combination of the corners' 1 / z), less 1e-12 for the rounding of z below
+            # (a few float64 ulps): a pixel already showing something at least that near is
+            # skipped before its barycentrics (35-45% of the raster's time on the ICT head)
+            z_low = min(z0, min(z1, z2)) * (1.0 - 1e-12)
             for py in range(ymin, ymax + 1):
                 for px in range(xmin, xmax + 1):
+                    if not z_low < z_out[b, py, px]:
+                        continue
                     w0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv
                     w1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv
                     w2 = 1.0 - w0 - w1

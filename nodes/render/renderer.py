@@ -32,10 +32,15 @@ pixels exact (no blur of the face that the landmark network reads) and costs O(p
 torch; SoftRas blends every triangle within a few pixels of every pixel (O(pixels x nearby
 triangles) memory in forward and backward), far over a 50 ms budget on two cores.
 
-On the CPU, steps 3-4 and the vertex normals run as numba kernels with hand-written
-backwards (`nodes.render.pixel_kernels`, through `shade_pixels` / `vertex_normals`: one pass
-over the covered pixels each way instead of dozens of torch ops and their autograd nodes);
-elsewhere (CUDA) as torch ops. The two paths agree to rounding
+On the CPU, every differentiable step runs as numba kernels with hand-written backwards
+(`nodes.render.pixel_kernels`): the projection (`_CompiledProjection`), the vertex normals
+(`vertex_normals`), and shading, compositing over the background and the silhouette blends
+as one autograd node (`_CompiledImage`: the covered pixels are shaded straight into the
+image and its depth / barycentric buffer, no image-sized torch temporaries); one pass over
+the vertices or the covered pixels each way instead of dozens of torch ops and their
+autograd nodes. The kernels split their work into two fixed halves that run on two threads
+when torch may use two (`nodes.render.halves`; the same bits on one thread or two).
+Elsewhere (CUDA) the steps are torch ops. The two paths agree to rounding
 (`tests/nodes/render/test_pixel_kernels.py`).
 
 Units: positions in cm; colours linear light (albedo in [0, 1]). This module imports torch

@@ -208,3 +208,55 @@ def test_two_threads_give_the_same_bits_as_one(rng, monkeypatch):
             torch.set_num_threads(before)
         for a, b in zip(*runs):
             assert torch.equal(a, b)
+
+
+def _raster_reference(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, height: int, width: int,
+                      near: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """The z-buffer without any early rejection, in numpy (the kernel's per-pixel arithmetic)."""
+    tri = np.full((height, width), -1, np.int32)
+    zbuf = np.full((height, width), np.inf)
+    for t, (i0, i1, i2) in enumerate(faces):
+        (x0, y0), (x1, y1), (x2, y2) = pix[i0], pix[i1], pix[i2]
+        z0, z1, z2 = depth[i0], depth[i1], depth[i2]
+        xa, xb, ya, yb = min(x0, x1, x2), max(x0, x1, x2), min(y0, y1, y2), max(y0, y1, y2)
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if not (z0 > near and z1 > near and z2 > near and area != 0.0 and np.isfinite(area)):
+            continue
+        xs = np.arange(max(int(np.ceil(xa)), 0), min(int(np.floor(xb)), width - 1) + 1, dtype=np.float64)
+        ys = np.arange(max(int(np.ceil(ya)), 0), min(int(np.floor(yb)), height - 1) + 1, dtype=np.float64)
+        if not (len(xs) and len(ys)):
+            continue
+        px, py = np.meshgrid(xs, ys)
+        inv = 1.0 / area
+        w0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv
+        w1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv
+        w2 = 1.0 - w0 - w1
+        with np.errstate(divide="ignore"):
+            z = 1.0 / (w0 * (1.0 / z0) + w1 * (1.0 / z1) + w2 * (1.0 / z2))
+        iy, ix = py.astype(int), px.astype(int)
+        win = (w0 >= 0) & (w1 >= 0) & (w2 >= 0) & (z < zbuf[iy, ix])
+        zbuf[iy[win], ix[win]] = z[win]
+        tri[iy[win], ix[win]] = t
+    return tri, zbuf
+
+
+def test_rasterizer_matches_a_plain_z_buffer(rng):
+    # the kernel skips a pixel already showing something nearer than the triangle's nearest corner;
+    # the buffers must be those of the plain z-buffer, also where triangles tie in depth (a flat
+    # grid parallel to the image, drawn twice: the first drawn keeps the pixel) and overlap
+    verts, faces, e, k = _bumpy_sphere(rng, 1)
+    pix = renderer.project_points_torch(verts, e, k)[0].numpy()
+    depth = verts[0, :, 2].numpy()
+    n = 9
+    gx, gy = np.meshgrid(np.linspace(2.3, 45.1, n), np.linspace(1.7, 44.9, n))
+    grid_pix = np.stack([gx.ravel(), gy.ravel()], -1)
+    cells = np.array([[r * n + c, r * n + c + 1, (r + 1) * n + c] for r in range(n - 1) for c in range(n - 1)] +
+                     [[r * n + c + 1, (r + 1) * n + c + 1, (r + 1) * n + c] for r in range(n - 1) for c in range(n - 1)])
+    all_pix = np.concatenate([pix, grid_pix])
+    all_depth = np.concatenate([depth, np.full(n * n, 38.0)])
+    all_faces = np.concatenate([faces, cells + len(pix), cells + len(pix)])
+    tri, zbuf = raster.rasterize_triangles(all_pix[None], all_depth[None], all_faces, 48, 48)
+    ref_tri, ref_z = _raster_reference(all_pix, all_depth, all_faces, 48, 48)
+    np.testing.assert_array_equal(tri[0], ref_tri)
+    np.testing.assert_array_equal(zbuf[0], ref_z)
+    assert (tri[0] >= len(faces)).sum() > 200 and (tri[0][tri[0] >= 0] < len(faces)).sum() > 200
