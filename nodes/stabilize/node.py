@@ -105,7 +105,9 @@ class ModePursuit(Node):
     type_name = "stabilize.ModePursuit"
     version = 3
     kind = SEQUENCE
-    preload = ("torch", "numba")  # the CPU kernels of robust_kernels.py import numba
+    # Imported in the runner's preload thread while the capture is read: torch, the solver, and
+    # the numba kernels of robust_kernels.py loaded from numba's cache (preload_kernels.py).
+    preload = ("torch", "nodes.stabilize.mode_pursuit", "nodes.stabilize.preload_kernels")
     Params = ModePursuitParams
 
     @classmethod
