@@ -301,7 +301,8 @@ class TrackFaces(Node):
     """
 
     type_name = "landmarks.TrackFaces"
-    version = 3  # 3: the full-range look (`full_range`); 2: the quarter-turned and sharpened looks
+    version = 4  # 4: sharpened looks at amount 6, confirmed at presence 0.9; 3: the full-range look
+    # (`full_range`); 2: the quarter-turned and sharpened looks
     kind = SEQUENCE
     resources = {"gpu": 1}
     torch_threads = 1  # the same points for any thread count (issue 30): the fit amplifies rounding
@@ -328,7 +329,8 @@ class TrackFaces(Node):
         with_iris: bool = Param(True, description="Run the iris model on both eyes of every frame read (`iris` "
                                 "NaN without): it costs about as much as the face mesh again (bench/detect_faces.py).")
         enhance: bool = Param(True, description="Where no face is confirmed in a frame, detect and confirm once "
-                              "more in the frame sharpened (unsharp mask, sigma 3 px, amount 3) and follow a face "
+                              "more in the frame sharpened (unsharp mask, sigma 3 px, amount 6; a face found there "
+                              "needs a face-mesh presence of 0.9) and follow a face "
                               "found there in sharpened frames (it reads small blurred faces the plain frame does "
                               "not: bench/detect_faces.py --only-check); costs up to three more detections "
                               "(upright and turned) on frames that fail.")

@@ -1,4 +1,5 @@
-"""Hard detection cases with known answers, made from skimage's photos (astronaut, camera).
+"""Hard detection cases with known answers, made from real photos: skimage's astronaut and camera
+and matplotlib's grace_hopper (a frontal US Navy portrait, public domain; `PHOTOS`).
 
 The detector and face mesh run once on the upright photo; their points are the reference. A
 case moves the photo into a canvas by an exact similarity transform (shrink, rotate about the
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["Case", "VideoCase", "photo", "reference", "make_case", "video_path", "make_video", "CASES", "eye_distance",
+__all__ = ["PHOTOS", "Case", "VideoCase", "photo", "reference", "make_case", "video_path", "make_video", "CASES", "eye_distance",
            "error_percent"]
 
 
@@ -35,8 +36,21 @@ class Case(NamedTuple):
     others: np.ndarray
 
 
+PHOTOS = ("astronaut", "camera", "grace_hopper")
+"""The photos of the cases: skimage's `astronaut` and `camera`, matplotlib's `grace_hopper.jpg`
+(512 x 600, shipped in matplotlib's sample data: Grace Hopper facing the camera)."""
+
+
 def photo(name: str) -> np.ndarray:
-    """skimage's `astronaut` or `camera` as (H, W, 3) float32 in [0, 1] (grey replicated)."""
+    """One of `PHOTOS` as (H, W, 3) float32 in [0, 1] (grey replicated)."""
+    if name == "grace_hopper":
+        from matplotlib.cbook import get_sample_data
+        from PIL import Image
+
+        with Image.open(get_sample_data("grace_hopper.jpg", asfileobj=False)) as file:
+            return np.asarray(file.convert("RGB"), np.float32) / 255.0
+    if name not in PHOTOS:
+        raise ValueError(f"photo: expected one of {PHOTOS}, found {name!r}")
     from skimage import data
 
     img = getattr(data, name)().astype(np.float32) / 255.0
@@ -121,7 +135,7 @@ def make_case(name: str = "astronaut", *, angle_deg: float = 0.0, eye_px: float 
     """Build a case (see the module docstring).
 
     Args:
-        name: "astronaut" or "camera".
+        name: one of `PHOTOS`.
         angle_deg: roll of the face, degrees, clockwise on screen.
         eye_px: eye distance in the canvas, pixels; None = the photo's own.
         canvas: (H, W); None = the photo's size.
