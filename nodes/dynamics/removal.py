@@ -274,7 +274,12 @@ def fit_removal(p: NodeParams, vertices: list[np.ndarray], fps: list[float], sku
         valid_frames.append(np.flatnonzero(ok))
     total = sum(len(v) for v in valid_frames) * len(samples)
     if total == 0:
-        raise InputError("captures", "expected frames away from segment changes and ends, found none")
+        margins = sorted({max(window_reach(p.window, fps[i], p.feature_fps),
+                              windows[i] if p.target == "moving_average" else 0) for i in range(count)})
+        raise InputError("captures", f"expected frames at least {'/'.join(map(str, margins))} frames away from "
+                                     f"segment changes and ends (the descriptor window's reach and the target's "
+                                     f"half-width), found none in {count} capture(s) of "
+                                     f"{[len(v) for v in vertices]} frames")
     for i in range(count):
         frames = valid_frames[i]
         quota = int(round(p.max_rows * len(frames) * len(samples) / total))

@@ -235,9 +235,12 @@ class TrainRemovalTakes(Node):
         params = _RemovalParams(target="moving_average", window=p.window, feature_fps=p.feature_fps,
                                 hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
                                 max_rows=p.max_rows)
-        model, report = fit_removal(params, vertices, [float(takes.fps[i]) for i in train],
-                                    [takes.skull(i).matrices for i in train], None, [None] * len(train),
-                                    rest_part, samples, seed, self.device, self.progress, windows)
+        try:
+            model, report = fit_removal(params, vertices, [float(takes.fps[i]) for i in train],
+                                        [takes.skull(i).matrices for i in train], None, [None] * len(train),
+                                        rest_part, samples, seed, self.device, self.progress, windows)
+        except InputError as err:
+            raise _too_short(err, [takes.names[i] for i in train]) from err
         model.config["target"] = "moving_average"
         model.config["target_window_s"] = p.target_window_s
         if region_ids is not None:
@@ -249,6 +252,15 @@ class TrainRemovalTakes(Node):
         if out is not None:
             report["held_out"] = held_out_error(model, takes, out, p.target_window_s, region_ids)
         return {"model": model, "report": JsonValue(report)}
+
+
+def _too_short(err: InputError, names: list[str]) -> InputError:
+    """The training functions' "no training frames" error ('captures') for the takes nodes: port
+    'takes', the takes named, and what to change."""
+    if err.port != "captures":
+        return err
+    return InputError("takes", f"takes {names}: {err.message.replace('capture(s)', 'take(s)')}; give longer takes "
+                               f"or a longer --frames range")
 
 
 class _RemovalParams(NodeParams):
@@ -346,10 +358,13 @@ class TrainSynthesisTakes(Node):
             fps.append(float(takes.fps[i]))
             self.progress(0.2 * (n + 1) / len(chosen), f"quasistatic take {takes.names[i]} from F")
         samples = select_samples(rest, p.num_samples, ids)
-        model, report = fit_synthesis(p, captures, quasistatic, skulls, [rest] * len(chosen), fps,
-                                      [None] * len(chosen), rest, samples,
-                                      self.seed if p.seed is None else p.seed, self.device,
-                                      lambda f, m: self.progress(0.2 + 0.8 * f, m))
+        try:
+            model, report = fit_synthesis(p, captures, quasistatic, skulls, [rest] * len(chosen), fps,
+                                          [None] * len(chosen), rest, samples,
+                                          self.seed if p.seed is None else p.seed, self.device,
+                                          lambda f, m: self.progress(0.2 + 0.8 * f, m))
+        except InputError as err:
+            raise _too_short(err, [takes.names[i] for i in chosen]) from err
         report = {"takes": [takes.names[i] for i in chosen], "rows": report["rows"],
                   "loss_per_epoch": report["losses"], "final_loss": report["final_loss"],
                   "seconds": report["seconds"]}
