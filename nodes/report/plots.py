@@ -189,7 +189,7 @@ def plot_rigid_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray]], path:
             axes[1, c].plot(x, trans[:, c], label=label, linewidth=1, **style)
     for c, name in enumerate(_AXES):
         axes[0, c].set_title(f"rotation about {name} (deg)")
-        axes[1, c].set_title(f"translation {name} (cm)")
+        axes[1, c].set_title(f"translation {name} (cm)", y=1.0)  # fixed: no overlap search (no top ticks)
         axes[1, c].set_xlabel("frame")
         if fps:
             top = axes[0, c].secondary_xaxis("top", functions=(lambda f: f / fps, lambda s: s * fps))
@@ -266,7 +266,7 @@ def position_histograms_figure(world: np.ndarray, skull: np.ndarray | Mapping[st
             margin = 0.05 * (edges[-1] - edges[0])  # matplotlib's default axes margins (5%)
             ax.set_xlim(edges[0] - margin, edges[-1] + margin)
             ax.set_ylim(0, (top or 1) * 1.05)  # sticky at the baseline 0
-            ax.set_title(f"vertex {int(names[row])}, {_AXES[c]} - mean (cm)", fontsize="small")
+            ax.set_title(f"vertex {int(names[row])}, {_AXES[c]} - mean (cm)", fontsize="small", y=1.0)
             ax.legend(loc="upper right", fontsize="x-small")
     axes[-1, 0].set_ylabel("frames")
     return fig
