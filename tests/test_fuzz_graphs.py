@@ -207,6 +207,15 @@ def _inputs(folder: Path) -> dict[str, Path]:
     from nodes.dynamics.files import BUNDLED_REMOVAL
 
     files["model_file"] = BUNDLED_REMOVAL
+    # the bundled network labelled a synthesis network: dynamics_retarget's H, enough for cases
+    # refused before any network runs (dynamics.SynthesizeDynamics checks the kind while planning)
+    from nodegraph import TorchModel
+    from nodegraph.models import load_model, save_model
+
+    removal = load_model(BUNDLED_REMOVAL)
+    files["synthesis_file"] = folder / "synthesis.safetensors"
+    save_model(TorchModel(removal.architecture, removal.config | {"kind": "synthesis"}, removal.state,
+                          removal.normalization), files["synthesis_file"])
     files["folder"].mkdir()
     files["garbage_npz"].write_bytes(b"PK\x03\x04 not really a zip")
     files["garbage_png"].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
@@ -247,7 +256,7 @@ GOOD = {  # good inputs, by name in `_inputs`
     "fit_video": {"images": "plates", "camera": ""},
     "fit_video_temporal": {"images": "plates", "camera": ""},
     "dynamics_remove": {"capture": "face_capture", "skull": "face_capture", "model": ""},
-    "dynamics_retarget": {"removal_model": "model_file", "synthesis_model": "model_file"},
+    "dynamics_retarget": {"removal_model": "model_file", "synthesis_model": "synthesis_file"},
     "dynamics_train": {},
     "dynamics_train_captures": {"captures": "takes", "neutral": "neutral"},
     "stabilize": {"capture": "capture"},
