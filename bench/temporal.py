@@ -79,6 +79,9 @@ def flow_rows(size: int, pairs: int) -> list[tuple[str, float, float]]:
         tag = f", motion x{amplitude:.0f}"
         results.setdefault("ours, torch (differentiable)" + tag, []).append((endpoint_error(flow, truth, mask).item(), ms))
         for name, settings in (("ours, compiled (flow.OpticalFlow defaults)", FlowSettings()),
+                               ("ours, compiled, plain Jacobi (v2: 12/40 iterations, 8 warps)",
+                                FlowSettings(acceleration=0.0, finest_iterations=12, iterations=40, warps=8)),
+                               ("ours, compiled, warps=8", FlowSettings(warps=8)),
                                ("ours, compiled, finest_warps=8", FlowSettings(finest_warps=8)),
                                ("ours, compiled, fast (skip 1, 7 warps, median/warp, alpha .07)",
                                 FlowSettings(skip_levels=1, warps=7, median_every_warp=True, alpha=0.07))):
@@ -208,8 +211,15 @@ def main() -> None:
     print(f"torch {torch.__version__}, {args.threads} threads; flow on {args.pairs} face-render pairs at "
           f"{args.size}^2")
     print(f"{'flow':66s} {'EPE px':>8s} {'ms/pair':>8s}")
-    for name, epe, ms in flow_rows(args.size, args.pairs):
+    rows = flow_rows(args.size, args.pairs)
+    for name, epe, ms in rows:
         print(f"{name:66s} {epe:8.3f} {ms:8.1f}")
+    table = {name: (epe, ms) for name, epe, ms in rows}
+    for tag in sorted({name.rpartition(",")[2] for name in table if "motion" in name}):
+        ours, dis = table.get("ours, compiled (flow.OpticalFlow defaults)," + tag), table.get("DIS medium," + tag)
+        if ours and dis:
+            print(f"flow.OpticalFlow defaults against DIS medium,{tag}: {ours[0] / dis[0]:.2f}x its EPE in "
+                  f"{ours[1] / dis[1]:.2f}x its time")
     infill, smooth = temporal_rows(args.frames)
     print(f"\n{'infill of 5 failed frames':48s} {'rot rad':>8s} {'trans cm':>8s} {'jawOpen':>8s} {'s':>6s}")
     for name, r, t, j, s in infill:

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from ..geometry.image import pyramid_down, resize_bilinear, sample_bilinear
 
-__all__ = ["FlowSettings", "dense_flow", "upsample_flow", "warp_image", "luminance", "endpoint_error"]
+__all__ = ["FlowSettings", "chebyshev_weights", "dense_flow", "upsample_flow", "warp_image", "luminance", "endpoint_error"]
 
 
 class FlowSettings(NamedTuple):
@@ -53,6 +53,8 @@ class FlowSettings(NamedTuple):
             1.6x the time). Smaller images keep `warps` there (cheap, and their small faces
             need them).
         iterations: Jacobi iterations per warp at the coarsest level.
+        acceleration: the largest eigenvalue assumed for the Jacobi iteration (the Chebyshev
+            acceleration's upper bound, `chebyshev_weights`); 0 is plain Jacobi.
         finest_iterations: Jacobi iterations per warp at the finest level (levels in between
             interpolate geometrically; the finest level is the costly one).
         eps: Charbonnier epsilon of the data term, normalized intensity.
@@ -65,14 +67,52 @@ class FlowSettings(NamedTuple):
     alpha: float = 0.06
     levels: int = 5
     min_size: int = 12
-    warps: int = 8
-    iterations: int = 40
-    finest_iterations: int = 12
+    warps: int = 6
+    iterations: int = 12
+    finest_iterations: int = 6
     eps: float = 0.01
     median: bool = True
     median_every_warp: bool = False
     skip_levels: int = 0
     finest_warps: int = 2
+    acceleration: float = 0.99
+
+
+JACOBI_LOWEST_EIGENVALUE = -1.0 / 3.0
+"""The smallest eigenvalue of the 8-neighbour average (`(2 + 2 cos a)(2 + 2 cos b) - 4) / 12` at
+a = b = pi): the lower end of the Chebyshev interval of the Jacobi iteration."""
+
+
+def chebyshev_weights(iterations: int, highest: float,
+                      lowest: float = JACOBI_LOWEST_EIGENVALUE) -> tuple[list[float], float]:
+    """Chebyshev semi-iteration for a Jacobi iteration `x <- J(x)` whose iteration matrix has its
+    eigenvalues in [lowest, highest] (Golub and Varga 1961; Saad, Iterative Methods, 12.3):
+    `x_k+1 = omega_k+1 (gamma J(x_k) + (1 - gamma) x_k - x_k-1) + x_k-1`, `x_-1 = x_0`.
+
+    Args:
+        iterations: number of sweeps.
+        highest: the largest eigenvalue assumed, < 1 (0 with `lowest` 0: plain Jacobi).
+        lowest: the smallest eigenvalue assumed.
+    Returns:
+        (omegas, gamma): the extrapolation of each sweep (the first 1) and the shift `gamma`
+        = 2 / (2 - lowest - highest) that centres the interval.
+
+    Example:
+        >>> chebyshev_weights(3, 0.0, 0.0)
+        ([1.0, 1.0, 1.0], 1.0)
+    """
+    if not lowest <= highest < 1.0:
+        raise ValueError(f"acceleration: expected {lowest:.3f} <= highest eigenvalue < 1, found {highest}")
+    if highest == 0.0 and lowest == 0.0:
+        return [1.0] * iterations, 1.0
+    sigma = (highest - lowest) / (2.0 - lowest - highest)
+    omegas: list[float] = []
+    omega = 1.0
+    for k in range(iterations):
+        omega = 1.0 if k == 0 else (1.0 / (1.0 - 0.5 * sigma * sigma) if k == 1
+                                    else 1.0 / (1.0 - 0.25 * sigma * sigma * omega))
+        omegas.append(omega)
+    return omegas, 2.0 / (2.0 - lowest - highest)
 
 
 def luminance(images: Tensor) -> Tensor:
@@ -219,9 +259,12 @@ def dense_flow(image1: Tensor, image2: Tensor, settings: FlowSettings = FlowSett
             grad = torch.cat([ix, iy], 1)
             step = grad * (weight / (s.alpha * s.alpha + weight * (ix * ix + iy * iy)))
             const = it - (grad * flow).sum(1, keepdim=True)
-            for _ in range(iters):
+            omegas, gamma = chebyshev_weights(iters, s.acceleration, *(() if s.acceleration else (0.0,)))
+            prev = flow
+            for omega in omegas:
                 avg = _neighbour_average(flow)
-                flow = avg - step * ((grad * avg).sum(1, keepdim=True) + const)
+                jacobi = gamma * (avg - step * ((grad * avg).sum(1, keepdim=True) + const)) + (1.0 - gamma) * flow
+                flow, prev = omega * (jacobi - prev) + prev, flow
             if s.median and s.median_every_warp:
                 flow = _median3(flow)
         if s.median and not s.median_every_warp:

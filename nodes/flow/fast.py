@@ -101,11 +101,15 @@ def _linearize(a1: np.ndarray, a2: np.ndarray, gx1: np.ndarray, gy1: np.ndarray,
 
 @numba.njit(cache=True, nogil=True, inline="always", fastmath=True)
 def _sweep_row(pu: np.ndarray, pv: np.ndarray, qu: np.ndarray, qv: np.ndarray, j: int, y: int, ix: np.ndarray,
-               iy: np.ndarray, su: np.ndarray, sv: np.ndarray, const: np.ndarray) -> None:
-    # one Jacobi update of image row y, held in row j of the column-padded buffers p (old), q (new)
+               iy: np.ndarray, su: np.ndarray, sv: np.ndarray, const: np.ndarray, omega: float,
+               gamma: float) -> None:
+    # one Chebyshev-accelerated Jacobi update of image row y, held in row j of the column-padded
+    # buffers p (current iterate) and q (the previous one on entry, the new one on exit):
+    # q <- omega (gamma J(p) + (1 - gamma) p - q) + q, J the plain Jacobi update
     w = ix.shape[1]
     k = np.float32(1.0 / 12.0)
     two, four = np.float32(2.0), np.float32(4.0)
+    om, ga, keep = np.float32(omega), np.float32(gamma), np.float32(1.0 - gamma)
     for x in range(w):
         # 8-neighbour average: ([1 2 1]^T [1 2 1] - 4 delta) / 12
         au = ((pu[j - 1, x] + two * pu[j - 1, x + 1] + pu[j - 1, x + 2])
@@ -115,17 +119,23 @@ def _sweep_row(pu: np.ndarray, pv: np.ndarray, qu: np.ndarray, qv: np.ndarray, j
               + two * (pv[j, x] + two * pv[j, x + 1] + pv[j, x + 2])
               + (pv[j + 1, x] + two * pv[j + 1, x + 1] + pv[j + 1, x + 2]) - four * pv[j, x + 1]) * k
         r = ix[y, x] * au + iy[y, x] * av + const[y, x]
-        qu[j, x + 1] = au - su[y, x] * r
-        qv[j, x + 1] = av - sv[y, x] * r
+        ju = ga * (au - su[y, x] * r) + keep * pu[j, x + 1]
+        jv = ga * (av - sv[y, x] * r) + keep * pv[j, x + 1]
+        qu[j, x + 1] = om * (ju - qu[j, x + 1]) + qu[j, x + 1]
+        qv[j, x + 1] = om * (jv - qv[j, x + 1]) + qv[j, x + 1]
     qu[j, 0], qu[j, w + 1] = qu[j, 1], qu[j, w]
     qv[j, 0], qv[j, w + 1] = qv[j, 1], qv[j, w]
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
-def _jacobi_block(u: np.ndarray, v: np.ndarray, out_u: np.ndarray, out_v: np.ndarray, ix: np.ndarray,
-                  iy: np.ndarray, su: np.ndarray, sv: np.ndarray, const: np.ndarray, sweeps: int,
-                  strips: int) -> None:
-    """`sweeps` Jacobi sweeps from (u, v) into (out_u, out_v), in `strips` row strips at once.
+def _jacobi_block(u: np.ndarray, v: np.ndarray, prev_u: np.ndarray, prev_v: np.ndarray, out_u: np.ndarray,
+                  out_v: np.ndarray, out_prev_u: np.ndarray, out_prev_v: np.ndarray, ix: np.ndarray,
+                  iy: np.ndarray, su: np.ndarray, sv: np.ndarray, const: np.ndarray, omegas: np.ndarray,
+                  gamma: float, strips: int, first: bool, last: bool) -> None:
+    """`len(omegas)` accelerated Jacobi sweeps from the iterates (u, v) (current) and (prev_u,
+    prev_v) (previous; not read when `first`: the first sweep's previous iterate is the start)
+    into (out_u, out_v) and (out_prev_u, out_prev_v) (not written when `last`), in `strips` row
+    strips at once (`_sweep_row`; `omegas[s]` the extrapolation of sweep s).
 
     Each strip copies its rows and `sweeps - 1` rows either side (replicate borders at the
     image's edges), sweeps them locally and keeps its own rows: the halo rows go stale one row
@@ -133,22 +143,33 @@ def _jacobi_block(u: np.ndarray, v: np.ndarray, out_u: np.ndarray, out_v: np.nda
     count), for one parallel launch per `sweeps` sweeps instead of one per sweep.
     """
     h, w = u.shape
+    sweeps = omegas.shape[0]
     for strip in numba.prange(strips):
         r0, r1 = strip * h // strips, (strip + 1) * h // strips
         lo, hi = max(r0 - (sweeps - 1), 0), min(r1 + (sweeps - 1), h)
         n = hi - lo
         pu = np.empty((n + 2, w + 2), np.float32)
         pv = np.empty((n + 2, w + 2), np.float32)
+        qu = np.empty((n + 2, w + 2), np.float32)
+        qv = np.empty((n + 2, w + 2), np.float32)
         for j in range(n + 2):
             y = min(max(lo - 1 + j, 0), h - 1)
-            pu[j, 1:w + 1] = u[y]
-            pv[j, 1:w + 1] = v[y]
+            for x in range(w):
+                pu[j, x + 1] = u[y, x]
+                pv[j, x + 1] = v[y, x]
+            if first:
+                for x in range(w):
+                    qu[j, x + 1] = u[y, x]
+                    qv[j, x + 1] = v[y, x]
+            else:
+                for x in range(w):
+                    qu[j, x + 1] = prev_u[y, x]
+                    qv[j, x + 1] = prev_v[y, x]
             pu[j, 0], pu[j, w + 1] = u[y, 0], u[y, w - 1]
             pv[j, 0], pv[j, w + 1] = v[y, 0], v[y, w - 1]
-        qu, qv = pu.copy(), pv.copy()
-        for _ in range(sweeps):
+        for s in range(sweeps):
             for j in range(1, n + 1):
-                _sweep_row(pu, pv, qu, qv, j, lo - 1 + j, ix, iy, su, sv, const)
+                _sweep_row(pu, pv, qu, qv, j, lo - 1 + j, ix, iy, su, sv, const, omegas[s], gamma)
             if lo == 0:  # replicate the image's top and bottom rows
                 qu[0], qv[0] = qu[1], qv[1]
             if hi == h:
@@ -156,31 +177,45 @@ def _jacobi_block(u: np.ndarray, v: np.ndarray, out_u: np.ndarray, out_v: np.nda
             pu, qu = qu, pu
             pv, qv = qv, pv
         for y in range(r0, r1):
-            out_u[y] = pu[y - lo + 1, 1:w + 1]
-            out_v[y] = pv[y - lo + 1, 1:w + 1]
+            for x in range(w):
+                out_u[y, x] = pu[y - lo + 1, x + 1]
+                out_v[y, x] = pv[y - lo + 1, x + 1]
+            if not last:
+                for x in range(w):
+                    out_prev_u[y, x] = qu[y - lo + 1, x + 1]
+                    out_prev_v[y, x] = qv[y - lo + 1, x + 1]
 
 
 def _jacobi(u: np.ndarray, v: np.ndarray, ix: np.ndarray, iy: np.ndarray, su: np.ndarray, sv: np.ndarray,
-            const: np.ndarray, iterations: int, scratch: np.ndarray) -> None:
-    """`iterations` Jacobi sweeps of the linearized Euler-Lagrange equations (in place).
+            const: np.ndarray, iterations: int, acceleration: float, scratch: np.ndarray) -> None:
+    """`iterations` Chebyshev-accelerated Jacobi sweeps of the linearized Euler-Lagrange
+    equations (in place; `dense.chebyshev_weights`).
 
     Blocks of sweeps per parallel launch (`_jacobi_block`), over as many row strips as numba
     has threads; blocks short enough that the strips' halos stay a small part of their rows.
-    `scratch` (2, H, W) float32.
+    `scratch` (6, H, W) float32.
     """
+    from .dense import chebyshev_weights
+
     h = u.shape[0]
+    omegas, gamma = chebyshev_weights(iterations, acceleration, *(() if acceleration else (0.0,)))
+    omegas = np.asarray(omegas, np.float32)
     strips = numba.get_num_threads()
     block = iterations if strips == 1 else max(1, min(iterations, h // (8 * strips)))
-    src_u, src_v, dst_u, dst_v = u, v, scratch[0], scratch[1]
+    cur_u, cur_v, prev_u, prev_v = u, v, scratch[0], scratch[1]
+    free = [scratch[2], scratch[3], scratch[4], scratch[5]]
     done = 0
     while done < iterations:
         k = min(block, iterations - done)
-        _jacobi_block(src_u, src_v, dst_u, dst_v, ix, iy, su, sv, const, k, strips)
-        src_u, src_v, dst_u, dst_v = dst_u, dst_v, src_u, src_v
+        nu, nv, npu, npv = free
+        _jacobi_block(cur_u, cur_v, prev_u, prev_v, nu, nv, npu, npv, ix, iy, su, sv, const,
+                      omegas[done:done + k], gamma, strips, done == 0, done + k == iterations)
+        free = [cur_u, cur_v, prev_u, prev_v]
+        cur_u, cur_v, prev_u, prev_v = nu, nv, npu, npv
         done += k
-    if src_u is not u:
-        u[:] = src_u
-        v[:] = src_v
+    if cur_u is not u:
+        u[:] = cur_u
+        v[:] = cur_v
 
 
 @numba.njit(cache=True, nogil=True)
@@ -295,6 +330,8 @@ def dense_flow_numpy(image1, image2, settings: FlowSettings = FlowSettings()) ->
         pyr1.append(_blur_down(pyr1[-1]))
         pyr2.append(_blur_down(pyr2[-1]))
     levels = len(pyr1)
+    work_buffer = np.empty(9 * i1.size, np.float32)
+    scratch_buffer = np.empty(6 * i1.size, np.float32)
     u = v = None
     last = min(max(s.skip_levels, 0), levels - 1)
     threads = numba.get_num_threads()
@@ -309,13 +346,13 @@ def dense_flow_numpy(image1, image2, settings: FlowSettings = FlowSettings()) ->
             else:
                 u, v = _resize_flow(u, v, h, w)
             gx1, gy1 = np.empty_like(a1), np.empty_like(a1)
-            work = np.empty((9, h, w), np.float32)
-            scratch = np.empty((2, h, w), np.float32)
+            work = work_buffer[:9 * h * w].reshape(9, h, w)  # one buffer for every level: no fresh pages
+            scratch = scratch_buffer[:6 * h * w].reshape(6, h, w)
             iters = _iterations_at(level, levels, s)
             _gradients(a1, gx1, gy1)
             for _ in range(_warps_at(level, h * w, s)):
                 _linearize(a1, a2, gx1, gy1, u, v, s.alpha, s.eps, work)
-                _jacobi(u, v, work[4], work[5], work[6], work[7], work[8], iters, scratch)
+                _jacobi(u, v, work[4], work[5], work[6], work[7], work[8], iters, s.acceleration, scratch)
                 if s.median and s.median_every_warp:
                     _median3(u, work[0])
                     _median3(v, work[0])

@@ -83,3 +83,44 @@ def test_compiled_flow_is_the_same_on_any_thread_count(pair):
         numba.set_num_threads(threads)
     assert np.abs(one).max() > 0.5
     np.testing.assert_array_equal(one, two)
+
+
+def test_chebyshev_sweeps_converge_faster_than_plain_jacobi():
+    """One warp's linearized equations (a smooth texture of the contrast `dense_flow` normalizes to,
+    ~0.25, moved by a known half-pixel shift) solved by the compiled sweeps from zero: 20
+    accelerated sweeps (acceleration 0.99, the default) land closer to the system's solution
+    (20,000 plain sweeps) than 40 plain ones, and 40 accelerated ones 10x closer (measured: 0.012
+    and 0.0004 px against 0.020)."""
+    from nodes.flow.dense import chebyshev_weights
+    from nodes.flow.fast import _gradients, _jacobi, _linearize
+
+    rng = np.random.default_rng(1)
+    h = w = 48
+    noise = torch.as_tensor(rng.normal(size=(1, 1, h // 4, w // 4)).astype(np.float32))
+    tex = 0.2 * torch.nn.functional.interpolate(noise, size=(h, w), mode="bicubic", align_corners=True)[0, 0].numpy()
+    a1 = np.ascontiguousarray(tex)
+    a2 = np.ascontiguousarray(np.roll(tex, 1, axis=1) * 0.5 + tex * 0.5)  # about 0.5 px to the right
+    gx, gy = np.empty_like(a1), np.empty_like(a1)
+    _gradients(a1, gx, gy)
+    zero = np.zeros((h, w), np.float32)
+    work = np.empty((9, h, w), np.float32)
+    _linearize(a1, a2, gx, gy, zero, zero, 0.06, 0.01, work)
+    coeffs = (work[4], work[5], work[6], work[7], work[8])
+    scratch = np.empty((6, h, w), np.float32)
+
+    def solve(iterations: int, acceleration: float) -> np.ndarray:
+        u, v = zero.copy(), zero.copy()
+        _jacobi(u, v, *coeffs, iterations, acceleration, scratch)
+        return np.stack([u, v])
+
+    exact = solve(20000, 0.0)
+    assert 0.2 < exact[0].mean() < 0.8  # the shift is found
+    plain = np.abs(solve(40, 0.0) - exact).mean()
+    fast = np.abs(solve(20, 0.99) - exact).mean()
+    assert fast < 0.75 * plain, (fast, plain)
+    assert np.abs(solve(40, 0.99) - exact).mean() < 0.1 * plain
+    assert chebyshev_weights(3, 0.0, 0.0) == ([1.0, 1.0, 1.0], 1.0)
+    omegas, gamma = chebyshev_weights(20, 0.99)
+    assert omegas[0] == 1.0 and 1.0 < omegas[-1] < 2.0 and 1.0 < gamma < 2.0
+    with pytest.raises(ValueError, match="acceleration"):
+        chebyshev_weights(3, 1.0)
