@@ -166,7 +166,8 @@ class Expression(Node):
     the eyeLook weights from the plate's iris centres when `iris` is connected."""
 
     type_name = "fit.Expression"
-    version = 7  # 7: eyeLook weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
+    version = 8  # 8: outer rounds keep each frame's best state read (fit.solve.fit_stages); 7: eyeLook
+    # weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
