@@ -49,7 +49,7 @@ class FlowSettings(NamedTuple):
         warps: warps per level, but the finest.
         finest_warps: warps at the finest level when it has more than `FEW_WARPS_PIXELS`
             (128^2) pixels: the motion is mostly found on the coarser levels, and the finest
-            costs 4x the next (at 256^2: 2 warps, 0.90 px end-point error, 8 warps 0.81 px in
+            costs 4x the next (at 256^2: 2 warps, 0.80 px end-point error, 8 warps 0.71 px in
             1.6x the time). Smaller images keep `warps` there (cheap, and their small faces
             need them).
         iterations: Jacobi iterations per warp at the coarsest level.

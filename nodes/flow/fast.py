@@ -1,7 +1,7 @@
 """The forward pass of `nodes.flow.dense.dense_flow`, compiled: the same model, counts and
 arithmetic (float32, summed in another order: results agree to about 1e-4 px on average,
 1e-2 px at worst near silhouettes), as numba kernels per warp instead of thousands of small
-torch operations per pair (256^2, 2 cores, the defaults: 5.5 ms against 87 ms). For plate
+torch operations per pair (256^2, 2 cores, the defaults: 6.4-7.3 ms against 75-87 ms at load 2-5). For plate
 flow, where no gradient is needed (`flow.OpticalFlow` on the CPU); the torch version stays the
 differentiable one. Agreement: tests/nodes/flow/test_fast_flow.py.
 
