@@ -25,6 +25,7 @@ from nodegraph.takes import Takes, cached_take
 
 from ..io._files import npz_shape
 from ..io.mesh import load_mesh_sequence, mesh_frame_count
+from ..io.mesh_frame import MAX_FPS
 
 __all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "slice_takes", "LoadTakes", "LoadNeutral"]
 
@@ -120,6 +121,22 @@ def read_take(name: str, path: str, fps: float) -> tuple[MeshSequence, RigidSequ
     return mesh, (RigidSequence(matrices=rigid) if rigid is not None else None)
 
 
+def _check_stored_fps(name: str, path: str) -> None:
+    """InputError ("captures") when an NPZ take stores a frame rate that is not finite and in
+    (0, MAX_FPS] (only the small 'fps' member is read)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "fps" not in data.files:
+                return
+            stored = np.asarray(data["fps"], np.float64)
+    except (OSError, ValueError, zipfile.BadZipFile):
+        return  # unreadable: the read reports it
+    fps = float(stored.reshape(-1)[0]) if stored.size == 1 else float("nan")
+    if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise InputError("captures", f"take '{name}' ('{path}'): expected the frame rate it stores ('fps') finite "
+                                     f"and in (0, {MAX_FPS:g}], found {stored.tolist()}")
+
+
 def slice_takes(names: list[str], meshes: list[MeshSequence], skulls: list[RigidSequence | None],
                 frames: range) -> tuple[list[int], np.ndarray]:
     """Which takes keep at least `MIN_TAKE_FRAMES` of the run's `frames`, and the coverage.
@@ -172,13 +189,16 @@ class LoadTakes(Node):
 
     def frame_count(self) -> int | None:
         """The longest take's frame count, read from the files' headers while planning; a take
-        whose header gives none is read, so that its error is one refusal before anything runs."""
+        whose header gives none is read, so that its error is one refusal before anything runs,
+        and so is an NPZ take whose stored frame rate is not finite and in (0, MAX_FPS]."""
         counts = []
         for name, path, _ in find_takes(self.params.captures):
             count = mesh_frame_count(path)
             if not count:
                 count = read_take(name, path, self.params.fps)[0].num_frames  # raises why
             counts.append(int(count))
+            if path.lower().endswith(".npz"):
+                _check_stored_fps(name, path)
         return max(counts)
 
     def peek_vertex_counts(self) -> dict[str, int]:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nodegraph import MeshSequence, NodeError, RigidSequence, run_node
+from nodegraph import InputError, MeshSequence, NodeError, RigidSequence, run_node
 from nodegraph.cache import Cache
 from nodegraph.takes import Takes, cached_take
 from nodes.dynamics.take_files import LoadTakes, find_takes
@@ -133,3 +133,13 @@ def test_load_takes_reads_only_changed_files_through_the_runs_cache(tmp_path, mo
     takes = load()
     assert reads == ["a", "b", "b", "c"]
     assert takes.lengths.tolist() == [10, 12, 8]
+
+
+@pytest.mark.parametrize("fps", [-5.0, float("nan"), 1e308])
+def test_a_take_storing_a_bad_frame_rate_is_refused_while_planning(tmp_path, fps):
+    """LoadTakes is the run's frame source: its frame_count (called while planning) reads each NPZ
+    take's stored 'fps' and refuses a bad one naming the take (it was a FAILED task after reading)."""
+    np.savez(tmp_path / "a.npz", vertices=_mesh(20, 30.0, 1).vertices, fps=30.0)
+    np.savez(tmp_path / "b.npz", vertices=_mesh(20, 30.0, 2).vertices, fps=fps)
+    with pytest.raises(InputError, match="take 'b'.*'fps'.*found"):
+        LoadTakes({"captures": str(tmp_path)}).frame_count()
