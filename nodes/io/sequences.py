@@ -24,10 +24,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import (FRAMEWISE, SEQUENCE, Files, In, InputError, Node, NodeParams, Out, Param,
                        ParamSequence, RigidSequence)
-from nodegraph.files import atomic_path, files_value, write_npz_atomic
+from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
 from ._files import (check_frame_range, format_of, frame_where, npz_keys, npz_shape, read_npz_array,
                      read_npz_rows)
@@ -297,6 +298,11 @@ class _LoadParams(NodeParams):
 
 class _SaveParams(NodeParams):
     path: str = Param(..., output_file=True, description="Destination .json or .npz file.")
+
+    @field_validator("path")
+    @classmethod
+    def _json_or_npz(cls, value: str) -> str:
+        return check_output_suffix(value, tuple(SEQUENCE_FORMATS))
 
 
 class _SequenceLoader(Node):

@@ -5,10 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from pydantic import field_validator
 
 from nodegraph import SEQUENCE, Files, In, InputError, MeshSequence, Node, NodeParams, Out, Param
 from nodegraph import RigidSequence
-from nodegraph.files import write_npz_atomic
+from nodegraph.files import check_output_suffix, write_npz_atomic
 
 __all__ = ["save_stabilization", "SaveStabilization"]
 
@@ -42,6 +43,11 @@ class SaveStabilization(Node):
 
     class Params(NodeParams):
         path: str = Param("out/stabilized.npz", output_file=True, description="Output .npz (keys rigid, vertices, faces, fps).")
+
+        @field_validator("path")
+        @classmethod
+        def _npz(cls, value: str) -> str:
+            return check_output_suffix(value, (".npz",))
 
     rigid = In(RigidSequence, doc="Skull-to-world transforms, world = rigid @ skull.")
     mesh = In(MeshSequence, doc="Stabilized mesh (skull frame), cm.")

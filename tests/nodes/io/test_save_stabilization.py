@@ -4,6 +4,7 @@ is the file's, and the forward-only archive (data descriptors) reads back, also 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from nodegraph import MeshSequence, RigidSequence, run_node
 from nodegraph.files import file_sha256, write_npz_atomic
@@ -53,3 +54,23 @@ def test_npz_rows_with_nan_or_inf_are_refused_naming_frame_and_vertex(tmp_path):
         with pytest.raises(InputError, match=r"frame 4 .*NaN/inf at vertex 7"):
             load_mesh_sequence(str(path), range(0, 6))
         assert load_mesh_sequence(str(path), range(0, 4)).num_frames == 4  # rows before it are fine
+
+
+@pytest.mark.parametrize("path", ["out/stab.txt", "out/folder", "out/stab.npz.tmp"])
+def test_an_output_that_is_not_npz_is_refused_before_anything_runs(path):
+    """stabilize.json output=stab.txt was refused only after mode pursuit had run (issue 30)."""
+    from nodegraph import NodeError
+    from nodes.io.stabilization import SaveStabilization
+
+    with pytest.raises(NodeError, match=r"'path'.*\.npz"):
+        SaveStabilization({"path": path})
+
+
+@pytest.mark.parametrize("path", ["out/r.obj", "out/r"])
+def test_a_rigid_sequence_output_must_be_json_or_npz(path):
+    from nodegraph import NodeError
+    from nodes.io.sequences import SaveRigidSequence
+
+    with pytest.raises(NodeError, match=r"'path'.*\.json or \.npz"):
+        SaveRigidSequence({"path": path})
+    SaveRigidSequence({"path": "out/r.json"})

@@ -169,5 +169,5 @@ def test_error_frames_beyond_file_and_missing_file(tmp_path):
 
 
 def test_error_unknown_extension(tmp_path):
-    with pytest.raises(NodeError, match=r"'path'.*found '\.csv'"):
+    with pytest.raises(NodeError, match=r"'path'.*\.json or \.npz, found '.*r\.csv'"):
         run_node(SaveRigidSequence, {"path": str(tmp_path / "r.csv")}, rigid=make_rigid(2))
