@@ -1,7 +1,7 @@
 """Where the time goes: task time per node and per stage of the demo and of the video graph,
 the critical path, and import times.
 
-Run: python bench/profile.py [--demo-frames 100] [--video-frames 12] [--video-size 512]
+Run: python bench/profile_graphs.py [--demo-frames 100] [--video-frames 12] [--video-size 512]
      [--workers 2] [--skip-demo] [--skip-video] [--skip-imports]
 
 Prints, for `graphs/demo.json` (a performance of `--demo-frames` frames, the default 100) and for
