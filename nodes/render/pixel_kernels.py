@@ -175,14 +175,24 @@ def _basis(x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _shade_one(pix2, dep, nrm, albedo, sh, one_albedo, one_sh, nv, b, r0, r1, r2, px, py):  # pragma: no cover
-    """Colour, perspective-correct barycentrics and depth of one covered pixel (module docstring)."""
+def _edge_functions(pix2, r0, r1, r2, px, py):  # pragma: no cover - compiled
+    """(twice the signed area, cross products opposite corners 0 and 1) of point (px, py) in the
+    triangle of rows r0, r1, r2 of pix2: barycentrics l0 = cr0 / area, l1 = cr1 / area."""
     x0, y0 = pix2[r0, 0], pix2[r0, 1]
     x1, y1 = pix2[r1, 0], pix2[r1, 1]
     x2, y2 = pix2[r2, 0], pix2[r2, 1]
     area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
-    l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+    cr0 = (x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)
+    cr1 = (x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)
+    return area, cr0, cr1
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _shade_one(pix2, dep, nrm, albedo, sh, one_albedo, one_sh, nv, b, r0, r1, r2, px, py):  # pragma: no cover
+    """Colour, perspective-correct barycentrics and depth of one covered pixel (module docstring)."""
+    area, cr0, cr1 = _edge_functions(pix2, r0, r1, r2, px, py)
+    l0 = cr0 / area
+    l1 = cr1 / area
     l2 = 1.0 - l0 - l1
     m0, m1, m2 = l0 / dep[r0], l1 / dep[r1], l2 / dep[r2]
     s = m0 + m1 + m2
@@ -293,9 +303,7 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
         x0, y0 = pix2[r0, 0], pix2[r0, 1]
         x1, y1 = pix2[r1, 0], pix2[r1, 1]
         x2, y2 = pix2[r2, 0], pix2[r2, 1]
-        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-        cr0 = (x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)
-        cr1 = (x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)
+        area, cr0, cr1 = _edge_functions(pix2, r0, r1, r2, px, py)
         inv_area = 1.0 / area
         l0 = cr0 * inv_area
         l1 = cr1 * inv_area
@@ -493,12 +501,9 @@ def shade_image_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray
 def _edge_barycentric(pix2, r0, r1, r2, k, px, py):  # pragma: no cover - compiled
     """Barycentric k of point (px, py) in triangle (rows r0, r1, r2 of pix2), as
     `renderer.screen_barycentrics` (l2 = 1 - l0 - l1)."""
-    x0, y0 = pix2[r0, 0], pix2[r0, 1]
-    x1, y1 = pix2[r1, 0], pix2[r1, 1]
-    x2, y2 = pix2[r2, 0], pix2[r2, 1]
-    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    l0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) / area
-    l1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) / area
+    area, cr0, cr1 = _edge_functions(pix2, r0, r1, r2, px, py)
+    l0 = cr0 / area
+    l1 = cr1 / area
     if k == 0:
         return l0
     if k == 1:
@@ -512,9 +517,7 @@ def _add_edge_barycentric_grad(pix2, gp2, r0, r1, r2, k, px, py, g):  # pragma: 
     x0, y0 = pix2[r0, 0], pix2[r0, 1]
     x1, y1 = pix2[r1, 0], pix2[r1, 1]
     x2, y2 = pix2[r2, 0], pix2[r2, 1]
-    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    cr0 = (x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)
-    cr1 = (x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)
+    area, cr0, cr1 = _edge_functions(pix2, r0, r1, r2, px, py)
     g0 = g if k == 0 else (-g if k == 2 else 0.0)  # d loss / d l0, d l1
     g1 = g if k == 1 else (-g if k == 2 else 0.0)
     g_c0, g_c1 = g0 / area, g1 / area
