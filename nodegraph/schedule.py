@@ -168,7 +168,9 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             optional `check_plan(producers)` hook (input port -> the producing node instances,
             in edge order) raised: a node can so refuse, before anything runs, what its
             producers' parameters and files already tell (e.g. a network file that does not fit
-            the capture file's topology).
+            the capture file's topology); or its optional `check_frames(frames, producers)`
+            hook, called once the run's frames are known, raised (e.g. a trainer whose
+            captures, as the run slices them, are too short to give one training row).
     """
     graph.check()
     order = graph.topological_order()
@@ -224,6 +226,13 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         frames = range(0, next(iter(counts.values())))
     if len(frames) == 0:
         raise GraphError([GraphIssue("", "", "the frame range is empty")])
+    for nid in order:  # optional check of a node against the run's frames (e.g. too few to train on)
+        check = getattr(nodes[nid], "check_frames", None)
+        if check is not None:
+            try:
+                check(frames, {port: [nodes[src.node] for src in sources] for port, sources in ups[nid].items()})
+            except Exception as err:
+                raise wrap_error(nodes[nid], err, bad_input=True) from err
 
     forced = set(force)
     for nid in list(forced):

@@ -105,13 +105,15 @@ def test_train_captures_graph_refuses_a_range_past_every_take_before_anything_ru
 
 def test_train_captures_graph_on_a_range_too_short_to_train_names_the_takes_port_once(tmp_path):
     """--frames 0:4: no frame lies far enough from the takes' ends for the descriptor windows and
-    the moving-average target: exit 2 naming node 'train', its port 'takes' (not the training
-    function's 'captures') and what to change; nothing written."""
+    the moving-average target: refused while planning (from the takes' headers, before any take
+    is read or stabilized) naming node 'train', its port 'takes' (not the training function's
+    'captures'), the takes' frames and what to change; nothing written."""
     neutral = _takes(tmp_path)
-    result = runner.run(_graph(), frames=range(0, 4), scheduler="sync", cache=False,
-                        parameters=_parameters(tmp_path, neutral))
-    summary = result.summary()
-    assert result.exit_code == 2, summary
-    assert "'train'" in summary and "'takes'" in summary and "longer --frames range" in summary, summary
-    assert "[4, 4, 4] frames" in summary and summary.count("expected") == 1, summary
+    with pytest.raises(NodeError) as caught:
+        runner.run(_graph(), frames=range(0, 4), scheduler="sync", cache=False,
+                   parameters=_parameters(tmp_path, neutral))
+    message = str(caught.value)
+    assert caught.value.bad_input and "'train'" in message and "'takes'" in message, message
+    assert "longer --frames range" in message and "[4, 4, 4] frames" in message, message
+    assert message.count("expected") == 1, message
     assert not (tmp_path / "f.safetensors").exists() and not (tmp_path / "report.json").exists()

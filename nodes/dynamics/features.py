@@ -29,7 +29,8 @@ __all__ = [
     "apply_rigid_elementwise", "rotate_elementwise", "stabilize_points", "skull_velocity",
     "skin_velocity", "window_weights", "window_reach", "window_gather", "skull_descriptor",
     "skin_descriptor", "moving_average_target", "dynamic_offsets", "stretch_stencil",
-    "surface_stretch", "select_samples", "skull_landmarks", "segment_margin_mask",
+    "surface_stretch", "select_samples", "skull_landmarks", "segment_margin_mask", "training_mask",
+    "no_training_rows",
 ]
 
 
@@ -358,3 +359,26 @@ def segment_margin_mask(segments: np.ndarray | None, count: int, margin: int) ->
     for c in changes:
         ok &= (frames < c - margin) | (frames >= c + margin)
     return ok
+
+
+def training_mask(segments: np.ndarray | None, count: int, margin: int) -> np.ndarray:
+    """The frames a trainer draws rows from: at least `margin` frames from every segment change
+    and from both ends (the descriptor window's reach, and the target's half-width).
+
+    Args:
+        segments: (F,) segment labels, or None (one segment).
+        count: F.
+        margin: frames, >= 1.
+    Returns:
+        (F,) bool; all False when F <= 2 * margin.
+    """
+    ok = segment_margin_mask(segments, count, margin)
+    ok[:margin] = ok[-margin:] = False
+    return ok
+
+
+def no_training_rows(margins: list[int], lengths: list[int], noun: str = "capture(s)") -> str:
+    """The message of a training set with no frame to draw a row from (`training_mask` all False)."""
+    return (f"expected frames at least {'/'.join(map(str, sorted(set(margins))))} frames away from segment "
+            f"changes and ends (the descriptor window's reach and the target's half-width), found none in "
+            f"{len(lengths)} {noun} of {list(lengths)} frames")

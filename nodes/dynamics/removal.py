@@ -30,14 +30,14 @@ from nodegraph import (SEQUENCE, FaceModel, In, InputError, JsonValue, MeshSeque
 
 from ..mesh.regions import select_region
 from .features import (dynamic_offsets, moving_average_target, rotate_elementwise,
-                       segment_margin_mask, select_samples, skin_descriptor, skin_velocity,
-                       skull_descriptor, skull_landmarks, stabilize_points, window_gather,
-                       window_reach)
+                       no_training_rows, select_samples, skin_descriptor, skin_velocity,
+                       skull_descriptor, skull_landmarks, stabilize_points, training_mask,
+                       window_gather, window_reach)
 from .networks import predict, single_thread, standardize_inputs, standardize_stats, train_mlp
 from .propagate import cached_edges, cached_interpolation_matrix, propagate_offsets
 
 __all__ = ["HALO", "region_vertices", "topology_problem", "check_model", "locate_region", "model_edges",
-           "fit_removal", "predict_removal", "remove_dynamics", "TrainRemoval", "RemoveDynamics"]
+           "removal_margin", "planned_training_frames", "fit_removal", "predict_removal", "remove_dynamics", "TrainRemoval", "RemoveDynamics"]
 
 HALO = 16
 """Halo of the windowed dynamics nodes (frames): the window of w = 10 samples at the feature
@@ -199,6 +199,13 @@ class TrainRemoval(Node):
     model = Out(TorchModel, doc="removal network F (dynamics.MLP)")
     report = Out(JsonValue, doc="rows, epochs, seconds, losses")
 
+    def check_frames(self, frames: range, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs: captures whose producers know their frame rate and segments
+        (synth.DynamicPerformance) and whose run frames give no training row (--frames 0:4)
+        are one refusal, not a failure after the captures were made."""
+        p = self.params
+        refuse_short_run(producers, frames, lambda fps: removal_margin(p, fps, p.target_window))
+
     def run(self, captures: list[MeshSequence], skulls: list[RigidSequence],
             quasistatic: list[MeshSequence], segments: list[ParamSequence],
             whole: FaceModel | None = None, region_model: FaceModel | None = None) -> dict:
@@ -231,6 +238,53 @@ class TrainRemoval(Node):
             model.config.update(region=p.region_name, whole_vertices=int(whole.neutral.shape[0]))
             model.normalization["region_ids"] = region_ids
         return {"model": model, "report": JsonValue(report)}
+
+
+def planned_training_frames(producers: dict[str, list[Node]], frames: range,
+                            margin_of: Callable[[float], int]) -> tuple[list[int], list[int]] | None:
+    """While planning: per capture, the margin (frames) and how many of the run's `frames` a
+    trainer could draw rows from (`training_mask`), when every producer of 'captures' (and of
+    'segments', when connected) knows the frame rate and segment labels from its parameters
+    (`peek_capture_timing(frames)`, e.g. synth.DynamicPerformance); None otherwise (run()
+    then checks the values).
+
+    Args:
+        producers: the trainer's input port -> producing nodes (`check_frames`).
+        frames: the run's frames.
+        margin_of: fps -> the trainer's margin in frames (window reach, target half-width).
+    """
+    captures, segments = producers.get("captures", []), producers.get("segments", [])
+    if not captures or not all(hasattr(n, "peek_capture_timing") for n in captures + segments):
+        return None
+    if segments and len(segments) != len(captures):
+        return None  # run() reports the mismatch
+    margins, counts = [], []
+    for i, node in enumerate(captures):
+        fps, _ = node.peek_capture_timing(frames)
+        labels = segments[i].peek_capture_timing(frames)[1] if segments else None
+        margins.append(margin_of(fps))
+        counts.append(int(training_mask(labels, len(frames), margins[-1]).sum()))
+    return margins, counts
+
+
+def refuse_short_run(producers: dict[str, list[Node]], frames: range,
+                     margin_of: Callable[[float], int]) -> None:
+    """InputError ("captures") when the run's frames give the trainer no training row
+    (`planned_training_frames`): --frames 0:4 is refused while planning, not after the
+    captures were made."""
+    planned = planned_training_frames(producers, frames, margin_of)
+    if planned is None or sum(planned[1]) > 0:
+        return
+    raise InputError("captures", f"--frames {frames.start}:{frames.stop}: "
+                                 f"{no_training_rows(planned[0], [len(frames)] * len(planned[0]))}; "
+                                 f"pass a longer --frames range (more than twice the margin, within one segment)")
+
+
+def removal_margin(p: NodeParams, fps: float, target_window: int) -> int:
+    """Frames F's training keeps from segment changes and ends at `fps`: the descriptor
+    window's reach, and the moving-average target's half-width `target_window` (frames)."""
+    reach = window_reach(p.window, fps, p.feature_fps)
+    return max(reach, target_window if p.target == "moving_average" else 0)
 
 
 def fit_removal(p: NodeParams, vertices: list[np.ndarray], fps: list[float], skulls: list[np.ndarray],
@@ -266,20 +320,12 @@ def fit_removal(p: NodeParams, vertices: list[np.ndarray], fps: list[float], sku
     windows = list(target_windows) if target_windows is not None else [p.target_window] * count
     inputs, targets = [], []
     valid_frames = []
+    margins = [removal_margin(p, fps[i], windows[i]) for i in range(count)]
     for i in range(count):
-        reach = window_reach(p.window, fps[i], p.feature_fps)
-        margin = max(reach, windows[i] if p.target == "moving_average" else 0)
-        ok = segment_margin_mask(segments[i], len(vertices[i]), margin)
-        ok[:margin] = ok[-margin:] = False
-        valid_frames.append(np.flatnonzero(ok))
+        valid_frames.append(np.flatnonzero(training_mask(segments[i], len(vertices[i]), margins[i])))
     total = sum(len(v) for v in valid_frames) * len(samples)
     if total == 0:
-        margins = sorted({max(window_reach(p.window, fps[i], p.feature_fps),
-                              windows[i] if p.target == "moving_average" else 0) for i in range(count)})
-        raise InputError("captures", f"expected frames at least {'/'.join(map(str, margins))} frames away from "
-                                     f"segment changes and ends (the descriptor window's reach and the target's "
-                                     f"half-width), found none in {count} capture(s) of "
-                                     f"{[len(v) for v in vertices]} frames")
+        raise InputError("captures", no_training_rows(margins, [len(v) for v in vertices]))
     for i in range(count):
         frames = valid_frames[i]
         quota = int(round(p.max_rows * len(frames) * len(samples) / total))

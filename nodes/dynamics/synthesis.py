@@ -22,11 +22,12 @@ from nodegraph import (FRAMEWISE, SEQUENCE, In, InputError, JsonValue, MeshSeque
                        Out, Param, ParamSequence, RigidSequence, TorchModel, windowed)
 
 from .features import (apply_rigid_elementwise, dynamic_offsets, rotate_elementwise,
-                       segment_margin_mask, select_samples, skull_descriptor, skull_landmarks,
-                       stabilize_points, stretch_stencil, surface_stretch, window_reach)
+                       no_training_rows, select_samples, skull_descriptor, skull_landmarks,
+                       stabilize_points, stretch_stencil, surface_stretch, training_mask, window_reach)
 from .networks import predict, single_thread, standardize_inputs, standardize_stats, train_mlp
 from .propagate import cached_interpolation_matrix, propagate_offsets
-from .removal import HALO, _check_lists, _fps, check_model, model_edges, region_vertices
+from .removal import (HALO, _check_lists, _fps, check_model, model_edges, refuse_short_run,
+                      region_vertices)
 
 __all__ = ["synthesis_inputs", "predict_synthesis", "fit_synthesis", "TrainSynthesis", "SynthesizeDynamics",
            "Retarget"]
@@ -85,6 +86,13 @@ class TrainSynthesis(Node):
     model = Out(TorchModel, doc="synthesis network H (dynamics.MLP)")
     report = Out(JsonValue, doc="rows, epochs, seconds, losses")
 
+    def check_frames(self, frames: range, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs: captures whose producers know their frame rate and segments
+        (synth.DynamicPerformance) and whose run frames give no training row (--frames 0:4)
+        are one refusal, not a failure after the captures were made."""
+        p = self.params
+        refuse_short_run(producers, frames, lambda fps: window_reach(p.window, fps, p.feature_fps))
+
     def run(self, captures: list[MeshSequence], quasistatic: list[MeshSequence],
             skulls: list[RigidSequence], neutral: list[MeshSequence],
             segments: list[ParamSequence]) -> dict:
@@ -131,9 +139,7 @@ def fit_synthesis(p: NodeParams, captures: list[np.ndarray], quasistatic: list[n
     inputs, targets = [], []
     for i in range(len(captures)):
         reach = window_reach(p.window, fps[i], p.feature_fps)
-        ok = segment_margin_mask(segments[i], len(captures[i]), reach)
-        ok[:reach] = ok[-reach:] = False
-        frames = np.flatnonzero(ok)
+        frames = np.flatnonzero(training_mask(segments[i], len(captures[i]), reach))
         if not len(frames):  # a capture shorter than the window's reach gives no training rows
             continue
         rows = synthesis_inputs(quasistatic[i], skulls[i], neutrals[i], landmarks, stencil, fps[i],
@@ -142,8 +148,8 @@ def fit_synthesis(p: NodeParams, captures: list[np.ndarray], quasistatic: list[n
         inputs.append(rows[frames])
         targets.append(dy[frames].reshape(len(frames), -1).astype(np.float32))
     if not inputs:
-        raise InputError("captures", f"expected frames away from segment changes and ends, found none in "
-                                     f"{len(captures)} capture(s) of {[len(c) for c in captures]} frames")
+        raise InputError("captures", no_training_rows([window_reach(p.window, f, p.feature_fps) for f in fps],
+                                                      [len(c) for c in captures]))
     x_all, y_all = np.concatenate(inputs), np.concatenate(targets)
     in_mean, in_std = standardize_stats(x_all)
     out_mean, out_std = standardize_stats(y_all)

@@ -23,11 +23,11 @@ from nodegraph import (SEQUENCE, InputError, MeshSequence, Node, NodeParams, Out
 from nodegraph.files import file_sha256
 from nodegraph.takes import Takes, cached_take
 
-from ..io._files import npz_shape
+from ..io._files import npz_shape, pattern_files
 from ..io.mesh import load_mesh_sequence, mesh_frame_count
 from ..io.mesh_frame import MAX_FPS
 
-__all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "slice_takes", "LoadTakes", "LoadNeutral"]
+__all__ = ["TAKE_SUFFIXES", "find_takes", "read_take", "stored_fps", "slice_takes", "LoadTakes", "LoadNeutral"]
 
 MIN_TAKE_FRAMES = 2  # a take needs a velocity: fewer frames in the run's range leave it out
 
@@ -137,6 +137,21 @@ def _check_stored_fps(name: str, path: str) -> None:
                                      f"and in (0, {MAX_FPS:g}], found {stored.tolist()}")
 
 
+def stored_fps(path: str) -> float | None:
+    """The frame rate an NPZ take stores ('fps', only that member read), or None when it stores
+    none, is unreadable or is not an NPZ."""
+    if not path.lower().endswith(".npz"):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "fps" not in data.files:
+                return None
+            stored = np.asarray(data["fps"], np.float64)
+    except (OSError, ValueError, zipfile.BadZipFile):
+        return None
+    return float(stored.reshape(-1)[0]) if stored.size == 1 else None
+
+
 def slice_takes(names: list[str], meshes: list[MeshSequence], skulls: list[RigidSequence | None],
                 frames: range) -> tuple[list[int], np.ndarray]:
     """Which takes keep at least `MIN_TAKE_FRAMES` of the run's `frames`, and the coverage.
@@ -201,6 +216,28 @@ class LoadTakes(Node):
                 _check_stored_fps(name, path)
         return max(counts)
 
+    def peek_takes(self, frames: range) -> list[tuple[str, int, float | None]] | None:
+        """(name, frames in the run, frame rate or None when the header does not say) of each take
+        a run of `frames` keeps (at least `MIN_TAKE_FRAMES` of them), from the files' headers
+        while planning (for consumers' `check_frames`); None when a take's length is unknown
+        there (the run reports it)."""
+        try:
+            found = find_takes(self.params.captures)
+        except InputError:
+            return None
+        takes = []
+        for name, path, _ in found:
+            count = mesh_frame_count(path)
+            if not count:
+                return None
+            inside = min(frames.stop, int(count)) - frames.start
+            if inside >= MIN_TAKE_FRAMES:
+                fps = stored_fps(path) if path.lower().endswith(".npz") else None
+                if fps is None and not path.lower().endswith((".usd", ".usda", ".usdc")) and self.params.fps > 0:
+                    fps = float(self.params.fps)  # what read_take gives a file without a rate
+                takes.append((name, inside, fps if fps is not None and 0 < fps <= MAX_FPS else None))
+        return takes
+
     def peek_vertex_counts(self) -> dict[str, int]:
         """Take name -> vertex count, from the headers of the NPZ takes (read while planning, for
         consumers' `check_plan`); takes of other formats, and unreadable ones, are left out (the
@@ -262,6 +299,9 @@ class LoadTakes(Node):
         return {"takes": takes, "coverage": ParamSequence(values=coverage, names=names)}
 
 
+_PLANNED_NEUTRALS: dict[tuple, MeshSequence] = {}  # file state -> the neutral read while planning
+
+
 class LoadNeutral(Node):
     """Read the subject's neutral: one frame of a mesh file, as a whole value (not framed by the run)."""
 
@@ -281,8 +321,30 @@ class LoadNeutral(Node):
 
     def check_plan(self, producers: dict[str, list[Node]]) -> None:
         """Before anything runs: the file is read (one frame), so a missing or unreadable neutral,
-        or one of several frames without `frame`, is one refusal."""
-        self._planned_vertices = self._read().num_vertices
+        or one of several frames without `frame`, is one refusal. The mesh read is kept for run()
+        in this process (keyed by the files' paths, sizes and modification times), so the file
+        is read once a run."""
+        mesh = self._read()
+        self._planned_vertices = mesh.num_vertices
+        if len(_PLANNED_NEUTRALS) >= 8:  # plans whose run never came (cache hits, refusals)
+            _PLANNED_NEUTRALS.clear()
+        _PLANNED_NEUTRALS[self._file_state()] = mesh
+
+    def input_files(self, frames: range | None = None) -> list[Path]:
+        """The neutral's file, or every file of a numbered OBJ/PLY pattern (their contents key the cache)."""
+        return pattern_files(self.params.path)
+
+    def _file_state(self) -> tuple:
+        """What identifies the read: parameters, and each file's path, size and modification time."""
+        p = self.params
+        stats = []
+        for path in pattern_files(p.path):
+            try:
+                stat = path.stat()
+            except OSError:
+                return (p.path, p.frame, p.prim, None)
+            stats.append((str(path.resolve()), stat.st_size, stat.st_mtime_ns))
+        return (p.path, p.frame, p.prim, tuple(stats))
 
     def peek_vertex_count(self) -> int | None:
         """The neutral's vertex count, read while planning (None when unreadable)."""
@@ -307,4 +369,5 @@ class LoadNeutral(Node):
         return load_mesh_sequence(p.path, range(frame, frame + 1), prim=p.prim)
 
     def run(self) -> dict:
-        return {"mesh": self._read()}
+        planned = _PLANNED_NEUTRALS.pop(self._file_state(), None)  # read while planning (same files)
+        return {"mesh": planned if planned is not None else self._read()}

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+from typing import Callable
 
 import numpy as np
 from pydantic import field_validator
@@ -37,7 +38,7 @@ from nodegraph.takes import Takes
 
 from ..geometry.rigid import fit_rigid, stabilize_vertices
 from .evaluate import rms_distance
-from .features import moving_average_target, select_samples, window_reach
+from .features import moving_average_target, no_training_rows, select_samples, window_reach
 from .removal import HALO, check_model, fit_removal, remove_dynamics
 from .synthesis import fit_synthesis
 
@@ -101,6 +102,7 @@ class StabilizeTakes(Node):
         a reader that knows its vertex count, a take of another vertex count than the neutral is
         one refusal (NPZ headers only), not a failure after every take was read."""
         takes = [n for n in producers.get("takes", []) if hasattr(n, "peek_vertex_counts")]
+        self._takes_reader = next((n for n in producers.get("takes", []) if hasattr(n, "peek_takes")), None)
         neutral = [n for n in producers.get("neutral", []) if hasattr(n, "peek_vertex_count")]
         count = neutral[0].peek_vertex_count() if neutral else None
         if not takes or count is None:
@@ -109,6 +111,12 @@ class StabilizeTakes(Node):
             if found != count:
                 raise InputError("neutral", f"expected one frame of {found} vertices (the takes' topology and "
                                             f"vertex order: take '{name}' has {found}), found {count} vertices")
+
+    def peek_takes(self, frames: range) -> list[tuple[str, int, float | None]] | None:
+        """The takes of a run of `frames` as its reader (dynamics.LoadTakes) sees them while
+        planning: (name, frames in the run, frame rate or None); None when unknown."""
+        reader = getattr(self, "_takes_reader", None)
+        return reader.peek_takes(frames) if reader is not None else None
 
     def run(self, takes: Takes, neutral: MeshSequence) -> dict:
         p = self.params
@@ -193,6 +201,50 @@ class TrainRemovalTakes(Node):
     model = Out(TorchModel, doc="Removal network F (dynamics.MLP).")
     report = Out(JsonValue, doc="Takes used, rows, loss per epoch, the held-out take's error.")
 
+    def split_takes(self, names: list[str]) -> tuple[list[int], int | None]:
+        """(indices of the takes F trains on, index of the held-out take or None) among `names`.
+
+        Raises:
+            InputError: ("held") no take matches `held`; ("held_out") not a take, or none left.
+        """
+        p = self.params
+        held = [i for i, name in enumerate(names) if fnmatch.fnmatchcase(name, p.held)]
+        if not held:
+            raise InputError("held", f"expected takes matching '{p.held}', found none among {names}")
+        if p.held_out == "-":
+            out = None
+        elif p.held_out:
+            if p.held_out not in names:
+                raise InputError("held_out", f"expected one of the takes {names}, found '{p.held_out}'")
+            out = names.index(p.held_out)
+        else:
+            out = held[-1] if len(held) > 1 else None
+        train = [i for i in held if i != out]
+        if not train:
+            raise InputError("held_out", f"expected a take left to train on, found only '{names[out]}'")
+        return train, out
+
+    def margin(self, fps: float) -> int:
+        """Frames of a take at `fps` kept from its ends: the descriptor window's reach and the
+        moving-average target's half-width."""
+        p = self.params
+        return max(window_reach(p.window, fps, p.feature_fps), target_half_width(p.target_window_s, fps))
+
+    def check_frames(self, frames: range, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs, from the takes' headers (dynamics.LoadTakes through
+        dynamics.StabilizeTakes): the take selection (`held`, `held_out`), the frame rates
+        against the window, and that the run's frames of the chosen takes give a training row
+        (--frames 0:4 is one refusal, not a failure after every take was stabilized)."""
+        peeked = _peek_takes(producers, frames)
+        if peeked is None:
+            return
+        train, out = self.split_takes([name for name, _, _ in peeked])
+        chosen = [peeked[i] for i in train + ([out] if out is not None else [])]
+        for name, _, fps in chosen:
+            if fps is not None:
+                _check_window(self.params, name, fps)
+        _refuse_no_rows([peeked[i] for i in train], frames, self.margin)
+
     def run(self, takes: Takes, neutral: MeshSequence) -> dict:
         p = self.params
         rest = check_neutral(neutral, takes)
@@ -200,20 +252,7 @@ class TrainRemovalTakes(Node):
             missing = [n for i, n in enumerate(takes.names) if not takes.has_rigid[i]]
             raise InputError("takes", f"expected a skull motion for every take (dynamics.StabilizeTakes), "
                                       f"found none for {missing}")
-        held = [i for i, name in enumerate(takes.names) if fnmatch.fnmatchcase(name, p.held)]
-        if not held:
-            raise InputError("held", f"expected takes matching '{p.held}', found none among {takes.names}")
-        if p.held_out == "-":
-            out = None
-        elif p.held_out:
-            if p.held_out not in takes.names:
-                raise InputError("held_out", f"expected one of the takes {takes.names}, found '{p.held_out}'")
-            out = takes.index(p.held_out)
-        else:
-            out = held[-1] if len(held) > 1 else None
-        train = [i for i in held if i != out]
-        if not train:
-            raise InputError("held_out", f"expected a take left to train on, found only '{takes.names[out]}'")
+        train, out = self.split_takes(list(takes.names))
         region_ids = None
         if p.region:
             if p.region not in takes.groups:
@@ -224,13 +263,10 @@ class TrainRemovalTakes(Node):
         rest_part = rest if region_ids is None else rest[region_ids]
         samples = select_samples(rest_part, p.num_samples)
         for i in train + ([out] if out is not None else []):
-            if window_reach(p.window, float(takes.fps[i]), p.feature_fps) > HALO:
-                raise InputError("feature_fps", f"take '{takes.names[i]}' at {takes.fps[i]:g} fps: expected "
-                                                f"a frame rate up to {(HALO - 3) * p.feature_fps / p.window:g} "
-                                                f"fps for window {p.window} at {p.feature_fps:g} fps")
+            _check_window(p, takes.names[i], float(takes.fps[i]))
         seed = self.seed if p.seed is None else p.seed
         # one moving-average half-width per take, in its frames (the takes' rates differ)
-        windows = [max(1, int(round(p.target_window_s * float(takes.fps[i])))) for i in train]
+        windows = [target_half_width(p.target_window_s, float(takes.fps[i])) for i in train]
         vertices = [cut(takes.take(i).vertices) for i in train]
         params = _RemovalParams(target="moving_average", window=p.window, feature_fps=p.feature_fps,
                                 hidden=p.hidden, epochs=p.epochs, batch_size=p.batch_size, lr=p.lr,
@@ -252,6 +288,40 @@ class TrainRemovalTakes(Node):
         if out is not None:
             report["held_out"] = held_out_error(model, takes, out, p.target_window_s, region_ids)
         return {"model": model, "report": JsonValue(report)}
+
+
+def target_half_width(target_window_s: float, fps: float) -> int:
+    """The moving-average target's half-width in frames of a take at `fps` (at least 1)."""
+    return max(1, int(round(target_window_s * fps)))
+
+
+def _check_window(p: NodeParams, name: str, fps: float) -> None:
+    """InputError ("feature_fps") when a take at `fps` needs more frames of window than HALO."""
+    if window_reach(p.window, fps, p.feature_fps) > HALO:
+        raise InputError("feature_fps", f"take '{name}' at {fps:g} fps: expected a frame rate up to "
+                                        f"{(HALO - 3) * p.feature_fps / p.window:g} fps for window {p.window} "
+                                        f"at {p.feature_fps:g} fps")
+
+
+def _peek_takes(producers: dict[str, list[Node]], frames: range) -> list[tuple[str, int, float | None]] | None:
+    """The takes a trainer's 'takes' producer (dynamics.StabilizeTakes) sees while planning, or None."""
+    readers = [n for n in producers.get("takes", []) if hasattr(n, "peek_takes")]
+    return readers[0].peek_takes(frames) if readers else None
+
+
+def _refuse_no_rows(takes: list[tuple[str, int, float | None]], frames: range,
+                    margin: Callable[[float], int]) -> None:
+    """InputError ("takes") when none of `takes` (name, frames in the run, fps) is longer than
+    twice its margin (so `fit_removal` / `fit_synthesis` would find no training row); takes of
+    unknown frame rate are not judged (run() does)."""
+    if not takes or any(fps is None for _, _, fps in takes):
+        return
+    margins = [margin(fps) for _, _, fps in takes]
+    if any(count > 2 * m for (_, count, _), m in zip(takes, margins)):
+        return
+    raise InputError("takes", f"--frames {frames.start}:{frames.stop}: takes {[name for name, _, _ in takes]}: "
+                              f"{no_training_rows(margins, [count for _, count, _ in takes], 'take(s)')}; give "
+                              f"longer takes or a longer --frames range")
 
 
 def _too_short(err: InputError, names: list[str]) -> InputError:
@@ -330,12 +400,27 @@ class TrainSynthesisTakes(Node):
     model = Out(TorchModel, doc="Synthesis network H (dynamics.MLP).")
     report = Out(JsonValue, doc="Takes used, rows, loss per epoch.")
 
+    def choose_takes(self, names: list[str]) -> list[int]:
+        """Indices of the takes H learns from among `names`; InputError ("takes") when none."""
+        chosen = [i for i, name in enumerate(names) if fnmatch.fnmatchcase(name, self.params.takes)]
+        if not chosen:
+            raise InputError("takes", f"expected takes matching '{self.params.takes}', found none among {names}")
+        return chosen
+
+    def check_frames(self, frames: range, producers: dict[str, list[Node]]) -> None:
+        """Before anything runs, from the takes' headers: a pattern matching no take, and run
+        frames that give no training row, are one refusal each."""
+        peeked = _peek_takes(producers, frames)
+        if peeked is None:
+            return
+        chosen = self.choose_takes([name for name, _, _ in peeked])
+        p = self.params
+        _refuse_no_rows([peeked[i] for i in chosen], frames, lambda fps: window_reach(p.window, fps, p.feature_fps))
+
     def run(self, takes: Takes, neutral: MeshSequence, removal: TorchModel) -> dict:
         p = self.params
         rest = check_neutral(neutral, takes)
-        chosen = [i for i, name in enumerate(takes.names) if fnmatch.fnmatchcase(name, p.takes)]
-        if not chosen:
-            raise InputError("takes", f"expected takes matching '{p.takes}', found none among {takes.names}")
+        chosen = self.choose_takes(list(takes.names))
         missing = [takes.names[i] for i in chosen if not takes.has_rigid[i]]
         if missing:
             raise InputError("takes", f"expected a skull motion for every take (dynamics.StabilizeTakes), "

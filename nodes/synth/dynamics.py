@@ -530,6 +530,12 @@ class DynamicPerformance(Node):
         p = self.params
         return len(p.motions) * len(p.expressions) * p.segment_frames
 
+    def peek_capture_timing(self, frames: range) -> tuple[float, np.ndarray]:
+        """The capture's frame rate and the segment label of each of the run's `frames`, known
+        from the parameters (for a trainer's `check_frames` while planning)."""
+        p = self.params
+        return float(p.fps), (np.arange(frames.start, frames.stop) // p.segment_frames).astype(np.float32)
+
     def run(self, model: FaceModel) -> dict:
         p = self.params
         total = self.frame_count()
