@@ -60,8 +60,10 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
                              at_anchors(identity_deltas, photo.vertices, photo.bary).to(SOLVE_DTYPE)
                              .transpose(-1, -2)], -1)
 
+    photo_cache: dict = {}  # the term about the current inactive weights (`PhotoTerm.about`)
+
     def photo_term(weights0: Tensor) -> PhotoTerm:
-        return PhotoTerm.about(photo, views, photo_weight, weights0, shapes, p_basis)
+        return PhotoTerm.about(photo, views, photo_weight, weights0, shapes, p_basis, cache=photo_cache)
 
     def landmark_fn(rot0: Tensor, weights0: Tensor, ident: Tensor) -> Callable[[Tensor], Tensor]:
         shape = torch.einsum("i,bclid->bcld", ident, id_d)

@@ -178,14 +178,23 @@ class PhotoTerm:
 
     @classmethod
     def about(cls, samples: PhotoSamples, views: FitViews, weight: float, weights: Tensor, active: Tensor | list[int],
-              basis: Tensor) -> "PhotoTerm":
+              basis: Tensor, cache: dict | None = None) -> "PhotoTerm":
         """The term about expression weights (B, K) whose `active` shapes are the unknowns: local0
         holds the samples' neutral with the other shapes at `weights`, `basis` (B, C, N, 3, S+)
-        the active shapes at the samples (then any other linear unknowns, e.g. identity components)."""
+        the active shapes at the samples (then any other linear unknowns, e.g. identity components).
+
+        `cache`: a dict the caller keeps for one set of samples, views, weight and basis; the term
+        is reused while the inactive weights are equal (a solve re-linearizes after every step,
+        and only its active weights move)."""
         inactive = weights.clone()
         inactive[:, active] = 0.0
-        return cls(samples, views, weight, samples.neutral + torch.einsum("bk,bclkd->bcld", inactive, samples.deltas),
+        if cache is not None and "inactive" in cache and torch.equal(cache["inactive"], inactive):
+            return cache["term"]
+        term = cls(samples, views, weight, samples.neutral + torch.einsum("bk,bclkd->bcld", inactive, samples.deltas),
                    basis)
+        if cache is not None:
+            cache["inactive"], cache["term"] = inactive, term
+        return term
 
     def _project(self, world: Tensor) -> Tensor:
         v = self.views

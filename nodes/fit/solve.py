@@ -373,7 +373,8 @@ def _stage_jacobian(neutral: Tensor, deltas: Tensor, views: FitViews, rot0: Tens
 def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors, state: PoseState, *,
                 prior: float, edge_weight: float, eyelid_weight: float, iterations: int,
                 rigid_prior: PoseState | None = None, rigid_prior_weight: float = 0.0,
-                photo: PhotoSamples | None = None, photo_weight: float = 0.0) -> tuple[PoseState, Tensor]:
+                photo: PhotoSamples | None = None, photo_weight: float = 0.0,
+                anchored: tuple[Tensor, Tensor] | None = None) -> tuple[PoseState, Tensor]:
     """Minimize one stage's energy over its unknowns (all frames at once; frames are independent).
 
     The energy is a sum of squares (`_stage_residuals`), minimized per frame by
@@ -397,17 +398,20 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
             `rigid_prior_weight` (per radian^2 and cm^2).
         photo: photometric samples (`nodes.fit.photometric`) of this round, or None;
             photo_weight: their w_p.
+        anchored: `_anchored(model, anchors)` in `SOLVE_DTYPE` when the caller has it (the
+            stages of a round share their anchors), or None to compute it here.
     Returns:
         the new state and (B,) the energy at it (data + edges + photometric + prior).
     """
     out_dt = state.rot.dtype
-    neutral, deltas = in_dtype(_anchored(model, anchors), SOLVE_DTYPE)
+    neutral, deltas = anchored if anchored is not None else in_dtype(_anchored(model, anchors), SOLVE_DTYPE)
     views, anchors, state, photo, rigid_prior = in_dtype((views, anchors, state, photo, rigid_prior), SOLVE_DTYPE)
     b = state.rot.shape[0]
     use_photo = photo is not None and photo_weight > 0 and stage.photometric
     if use_photo:
         shape_list = list(stage.shapes)
         p_basis = photo.deltas[:, :, :, shape_list].transpose(-1, -2)  # (B, C, N, 3, S)
+        photo_cache: dict = {}  # the term about the inactive weights, which the stage does not move
     dev, dt = neutral.device, neutral.dtype
     w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight, jaw=stage.jaw_weight)
     w_lm = torch.as_tensor(w_np, dtype=dt, device=dev)
@@ -439,7 +443,8 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
                               edge_weight=edge_weight, rigid_prior=rigid_prior,
                               rigid_prior_weight=rigid_prior_weight, iris=iris)
         x0 = unknowns(trans, weights)
-        term = PhotoTerm.about(photo, views, photo_weight, weights, shape_list, p_basis) if use_photo else None
+        term = PhotoTerm.about(photo, views, photo_weight, weights, shape_list, p_basis,
+                               cache=photo_cache) if use_photo else None
 
         def residuals(xf: Tensor) -> Tensor:
             xa = full(xf, x0)
@@ -647,11 +652,14 @@ def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple
             if moved:
                 best, best_e, best_objective = _keep_better(best, best_e, best_objective, state, e, objective)
         before = state
+        # the round's stages share the anchors, the samples and the views, cast once to the solve's precision
+        anchored = in_dtype(_anchored(model, anchors), SOLVE_DTYPE)
+        samples64, views64, start64 = in_dtype((samples, views, start), SOLVE_DTYPE)
         for stage in stages:
-            state, e = solve_stage(stage, model, views, anchors, state, prior=prior, edge_weight=edge_weight,
-                                   eyelid_weight=eyelid_weight, iterations=iterations, rigid_prior=start,
-                                   rigid_prior_weight=rigid_prior_weight, photo=samples,
-                                   photo_weight=photometric_weight)
+            state, e = solve_stage(stage, model, views64, anchors, state, prior=prior, edge_weight=edge_weight,
+                                   eyelid_weight=eyelid_weight, iterations=iterations, rigid_prior=start64,
+                                   rigid_prior_weight=rigid_prior_weight, photo=samples64,
+                                   photo_weight=photometric_weight, anchored=anchored)
             history.append({"round": r, "stage": stage.name, "energy": float(e.mean())})
         state = _part_way(before, state, step)
         if progress is not None:

@@ -133,8 +133,33 @@ class Anchors(NamedTuple):
     rendered: Tensor
 
 
+_VERTEX_ROWS: list[tuple[Tensor, int, Tensor]] = []  # (values, its _version, (V, K * 3) rows), newest last
+_VERTEX_ROWS_LOCK = threading.Lock()
+
+
+def _vertex_rows(values: Tensor) -> Tensor:
+    """(K, V, 3) -> (V, K * 3) contiguous: each vertex's K vectors in one row, so that gathering a
+    corner copies one row. Cached for the last 4 tensors (the model's shapes and identity
+    components are gathered again at every stage and round); a cached entry holds its tensor,
+    so its storage is not reused while cached, and an in-place change (`_version`) is seen."""
+    with _VERTEX_ROWS_LOCK:
+        for src, version, rows in _VERTEX_ROWS:
+            if src is values and version == values._version:
+                return rows
+    rows = values.detach().permute(1, 0, 2).reshape(values.shape[1], -1).contiguous()
+    with _VERTEX_ROWS_LOCK:
+        _VERTEX_ROWS.append((values, values._version, rows))
+        del _VERTEX_ROWS[:-4]
+    return rows
+
+
 def at_anchors(values: Tensor, vertices: Tensor, bary: Tensor) -> Tensor:
     """Per-vertex vectors interpolated at anchors (triangle corners + barycentrics).
+
+    `sum_j bary_j values[corner_j]`, summed over the corners in order (j = 0, 1, 2). (K, V, 3)
+    values are gathered from their vertex-major rows (`_vertex_rows`, cached): one (K * 3) row
+    per corner instead of K scattered 3-vectors, 6-17x faster for K = 53 (68-3000 anchors, one
+    thread), the same bits.
 
     Args:
         values: (V, 3) one vector per vertex, or (K, V, 3) K of them (shapes, components).
@@ -143,8 +168,19 @@ def at_anchors(values: Tensor, vertices: Tensor, bary: Tensor) -> Tensor:
         (B, C, L, 3), or (B, C, L, K, 3) for (K, V, 3) values.
     """
     if values.ndim == 2:
-        return (values[vertices] * bary[..., None]).sum(-2)
-    return (values[:, vertices] * bary[None, ..., None]).sum(-2).permute(1, 2, 3, 0, 4)
+        corners = values[vertices]  # (B, C, L, 3, 3)
+    else:
+        corners = _vertex_rows(values)[vertices]  # (B, C, L, 3, K * 3)
+    w = bary[..., None]
+    out = corners[..., 0, :] * w[..., 0, :] + corners[..., 1, :] * w[..., 1, :] + corners[..., 2, :] * w[..., 2, :]
+    if values.ndim == 2:
+        return out
+    if values.requires_grad and torch.is_grad_enabled():  # the cached rows are detached: gather afresh
+        corners = values[:, vertices]
+        out = (corners[..., 0, :] * w[None, ..., 0, :] + corners[..., 1, :] * w[None, ..., 1, :]
+               + corners[..., 2, :] * w[None, ..., 2, :])
+        return out.permute(1, 2, 3, 0, 4)
+    return out.unflatten(-1, (values.shape[0], 3))
 
 
 @lru_cache(maxsize=4)
