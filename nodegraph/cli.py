@@ -21,6 +21,7 @@ import difflib
 import json
 import os
 import sys
+import tempfile
 import traceback
 from pathlib import Path
 from typing import Any, Sequence
@@ -215,6 +216,11 @@ def _check_cache_folder(cache: Any) -> None:
         raise UsageError(f"{origin}: expected a folder for the cache, found '{root}', which {what}")
     if not os.access(here, os.W_OK | os.X_OK):
         raise UsageError(f"{origin}: expected a writable folder for the cache, found '{here}' not writable")
+    try:  # root passes os.access everywhere, yet cannot write in /proc, /sys or a read-only mount
+        os.rmdir(tempfile.mkdtemp(prefix=".nodegraph-cache-probe.", dir=here))
+    except OSError as err:
+        raise UsageError(f"{origin}: expected a writable folder for the cache, found '{here}', where no folder "
+                         f"can be made ({err.strerror or type(err).__name__}), for the cache '{root}'") from None
 
 
 def _print_tracebacks(failures: Sequence[dict[str, Any]]) -> None:

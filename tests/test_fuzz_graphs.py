@@ -201,7 +201,10 @@ def _inputs(folder: Path) -> dict[str, Path]:
     np.savez(files["face_capture"], **face)
     files["takes"] = folder / "takes"
     files["takes"].mkdir()
-    np.savez(files["takes"] / "take_a.npz", **face)
+    # 16 frames: enough to train on at 30 fps (margin 6 frames each side), so that the cases'
+    # culprits, not a run too short to train, are what TrainRemovalTakes' planning check refuses
+    np.savez(files["takes"] / "take_a.npz", **face | {"vertices": np.repeat(face["vertices"][:1], 16, axis=0),
+                                                     "rigid": np.repeat(face["rigid"][:1], 16, axis=0)})
     files["neutral"] = folder / "neutral.npz"  # one frame: dynamics.LoadNeutral refuses a take
     np.savez(files["neutral"], **face | {"vertices": face["vertices"][:1], "rigid": face["rigid"][:1]})
     from nodes.dynamics.files import BUNDLED_REMOVAL
