@@ -115,3 +115,18 @@ def test_load_neutral_reads_its_file_once_a_run(tmp_path, monkeypatch):
     node.check_plan({})
     np.savez(path, vertices=np.ones((1, 5, 3), np.float32), faces=np.array([[0, 1, 2]], np.int32))
     assert node.run()["mesh"].num_vertices == 5
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
+def test_cache_under_proc_is_refused_before_anything_runs(tmp_path, capsys):
+    """root passes os.access in /proc, yet no folder can be made there: exit 2 at once (was exit 1
+    after the outputs were committed, when the run's record could not be written)."""
+    from nodegraph.cli import main
+
+    capture = tmp_path / "c.npz"
+    np.savez(capture, vertices=np.zeros((2, 3, 3), np.float32), faces=np.array([[0, 1, 2]], np.int32), fps=30.0)
+    code = main(["run", str(GRAPHS / "stabilize.json"), f"capture={capture}", f"output={tmp_path}/s.npz",
+                 f"report={tmp_path}/r", "--cache", "/proc/nodegraph_cache", "--progress", "none"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--cache" in err and "/proc" in err and "Traceback" not in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz"]
