@@ -16,7 +16,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
-__all__ = ["run_halves", "MIN_PARALLEL_WORK"]
+__all__ = ["run_halves", "halves_in_parallel", "MIN_PARALLEL_WORK"]
 
 MIN_PARALLEL_WORK = 20_000
 """Work items (pixels, triangles) below which the two halves run on the calling thread."""
@@ -39,11 +39,18 @@ def _threads() -> int:
     return torch.get_num_threads()
 
 
+def halves_in_parallel(work: int) -> bool:
+    """Whether `run_halves(..., work)` would run its halves side by side (torch may use 2+
+    threads and `work` >= MIN_PARALLEL_WORK). A kernel whose one-pass result is the same bits as
+    its two halves' (disjoint writes) runs in one pass when not, skipping work the halves repeat."""
+    return work >= MIN_PARALLEL_WORK and _threads() >= 2
+
+
 def run_halves(first: Callable[[], Any], second: Callable[[], Any], work: int) -> tuple[Any, Any]:
     """Results of `first()` and `second()`: `first` on a pool thread while `second` runs here when
     torch may use 2+ threads and `work` >= MIN_PARALLEL_WORK, else both here, in order. The two
     must write to disjoint memory (each its own output, or disjoint parts of one)."""
-    if work < MIN_PARALLEL_WORK or _threads() < 2:
+    if not halves_in_parallel(work):
         return first(), second()
     future = _pool().submit(first)
     try:

@@ -40,7 +40,7 @@ import numpy as np
 from .halves import run_halves
 
 __all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward", "shade_image",
-           "shade_image_backward", "antialias_forward", "antialias_backward", "project_forward", "project_backward"]
+           "shade_image_backward", "split_coverage", "merge_coverage_grads", "antialias_forward", "antialias_backward", "project_forward", "project_backward"]
 
 _Y0, _Y1, _Y2A, _Y2B, _Y2C = 0.282094791773878, 0.488602511902920, 1.092548430592079, \
     0.315391565252520, 0.546274215296040
@@ -258,19 +258,6 @@ def _shade_image_kernel(pix, depth, normals, albedo, sh, pixels, corners, height
         image[p, 3] = 1.0
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _gather_pixel_grads(g_image, g_geometry, pixels, g_colour, g_mu, g_depth):  # pragma: no cover - compiled
-    """The image / geometry gradients at the covered pixels (either may be empty: zeros)."""
-    has_image = g_image.shape[0] > 0
-    has_geometry = g_geometry.shape[0] > 0
-    for n in range(pixels.shape[0]):
-        p = pixels[n]
-        for c in range(3):
-            g_colour[n, c] = g_image[p, c] if has_image else 0.0
-            g_mu[n, c] = g_geometry[p, c + 1] if has_geometry else 0.0
-        g_depth[n] = g_geometry[p, 0] if has_geometry else 0.0
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _add_sh_grad(grad_sh, bs, c, g, q1, q2, q3, q4, q5, q6, q7, q8):  # pragma: no cover - compiled
     grad_sh[bs, 0, c] += _Y0 * g
@@ -286,9 +273,12 @@ def _add_sh_grad(grad_sh, bs, c, g, q1, q2, q3, q4, q5, q6, q7, q8):  # pragma: 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
-                           g_colour, g_mu, g_depth, grad_pix, grad_depth, grad_normals, grad_albedo,
+                           g_colour, g_geometry, image_rows, grad_pix, grad_depth, grad_normals, grad_albedo,
                            grad_sh, n_lo, n_hi):  # pragma: no cover - compiled
-    """Covered pixels n_lo..n_hi - 1; grad_sh (B or 1, 9, 3) float64."""
+    """Covered pixels n_lo..n_hi - 1; grad_sh (B or 1, 9, 3) float64. The gradients w.r.t. the
+    colour (first 3 columns of g_colour) and the depth and barycentrics (g_geometry's 4 columns)
+    of covered pixel n are in row n, or with `image_rows` row pixels[n] (the image layout of
+    `shade_image`); an empty array (0 rows) is zero."""
     nv = depth.shape[1]
     pix2 = pix.reshape(-1, 2)
     dep = depth.reshape(-1)
@@ -298,8 +288,19 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
     gn2 = grad_normals.reshape(-1, 3)
     one_albedo = albedo.shape[0] == 1
     one_sh = sh.shape[0] == 1
+    has_colour = g_colour.shape[0] > 0
+    has_geometry = g_geometry.shape[0] > 0
     for n in range(n_lo, n_hi):
         b, r0, r1, r2, px, py = _corner_rows(pixels[n], corners, n, nv, height, width)
+        row = pixels[n] if image_rows else n
+        if has_colour:
+            gc0, gc1, gc2 = g_colour[row, 0], g_colour[row, 1], g_colour[row, 2]
+        else:
+            gc0 = gc1 = gc2 = 0.0
+        if has_geometry:
+            g_z, g_mu0, g_mu1, g_mu2 = g_geometry[row, 0], g_geometry[row, 1], g_geometry[row, 2], g_geometry[row, 3]
+        else:
+            g_z = g_mu0 = g_mu1 = g_mu2 = 0.0
         x0, y0 = pix2[r0, 0], pix2[r0, 1]
         x1, y1 = pix2[r1, 0], pix2[r1, 1]
         x2, y2 = pix2[r2, 0], pix2[r2, 1]
@@ -330,7 +331,6 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
         a10, a11, a12 = albedo[ba, c1, 0], albedo[ba, c1, 1], albedo[ba, c1, 2]
         a20, a21, a22 = albedo[ba, c2, 0], albedo[ba, c2, 1], albedo[ba, c2, 2]
         # colour_c = a_c E_c, a_c = sum_k mu_k albedo_kc, E_c = sum_j Y_j sh[j, c]
-        gc0, gc1, gc2 = g_colour[n, 0], g_colour[n, 1], g_colour[n, 2]
         ge0 = gc0 * (mu0 * a00 + mu1 * a10 + mu2 * a20)
         ge1 = gc1 * (mu0 * a01 + mu1 * a11 + mu2 * a21)
         ge2 = gc2 * (mu0 * a02 + mu1 * a12 + mu2 * a22)
@@ -376,11 +376,11 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
         gn2[r2, 0] += mu2 * gvx
         gn2[r2, 1] += mu2 * gvy
         gn2[r2, 2] += mu2 * gvz
-        gmu0 = g_mu[n, 0] + a00 * ga0 + a01 * ga1 + a02 * ga2 + n0x * gvx + n0y * gvy + n0z * gvz
-        gmu1 = g_mu[n, 1] + a10 * ga0 + a11 * ga1 + a12 * ga2 + n1x * gvx + n1y * gvy + n1z * gvz
-        gmu2 = g_mu[n, 2] + a20 * ga0 + a21 * ga1 + a22 * ga2 + n2x * gvx + n2y * gvy + n2z * gvz
+        gmu0 = g_mu0 + a00 * ga0 + a01 * ga1 + a02 * ga2 + n0x * gvx + n0y * gvy + n0z * gvz
+        gmu1 = g_mu1 + a10 * ga0 + a11 * ga1 + a12 * ga2 + n1x * gvx + n1y * gvy + n1z * gvz
+        gmu2 = g_mu2 + a20 * ga0 + a21 * ga1 + a22 * ga2 + n2x * gvx + n2y * gvy + n2z * gvz
         # mu_k = m_k / S, depth = 1 / S, m_k = l_k / z_k
-        g_s = -g_depth[n] * inv_s * inv_s
+        g_s = -g_z * inv_s * inv_s
         dot = gmu0 * mu0 + gmu1 * mu1 + gmu2 * mu2
         gm0 = (gmu0 - dot) * inv_s + g_s
         gm1 = (gmu1 - dot) * inv_s + g_s
@@ -435,6 +435,15 @@ def shade_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albe
         gradients w.r.t. pix (B, V, 2), depth (B, V), normals (B, V, 3), albedo (B or 1, V, 3)
         and sh (B or 1, 9, 3).
     """
+    g_geometry = np.concatenate([g_depth.reshape(-1, 1), g_mu], 1).astype(pix.dtype)
+    return _shade_backward_halves(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+                                  np.ascontiguousarray(g_colour, pix.dtype), g_geometry, False)
+
+
+def _shade_backward_halves(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                           sh: np.ndarray, pixels: np.ndarray, corners: np.ndarray, height: int, width: int,
+                           g_colour: np.ndarray, g_geometry: np.ndarray, image_rows: bool) -> tuple[np.ndarray, ...]:
+    """`_shade_backward_kernel` over two fixed halves of the pixels (arguments as there)."""
     dt = pix.dtype
     n = len(pixels)
 
@@ -442,7 +451,7 @@ def shade_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray, albe
         grads = [np.zeros(pix.shape, dt), np.zeros(depth.shape, dt), np.zeros(normals.shape, dt),
                  np.zeros(albedo.shape, dt), np.zeros(sh.shape, np.float64)]
         _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
-                               g_colour, g_mu, g_depth, *grads, n_lo, n_hi)
+                               g_colour, g_geometry, image_rows, *grads, n_lo, n_hi)
         return grads
 
     # two fixed halves of the pixels, each scattering into its own buffers, added in one order
@@ -488,13 +497,47 @@ def shade_image_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray
     given those w.r.t. its image and geometry ((B * H * W, 4) each, or None: zero). The coverage
     channel is constant (no gradient); the background's gradient is the image's at the pixels
     not covered (the caller's)."""
-    dt = pix.dtype
-    n = len(pixels)
-    empty = np.zeros((0, 4), dt)
-    g_colour, g_mu, g_depth = np.empty((n, 3), dt), np.empty((n, 3), dt), np.empty(n, dt)
-    _gather_pixel_grads(empty if g_image is None else g_image, empty if g_geometry is None else g_geometry,
-                        pixels, g_colour, g_mu, g_depth)
-    return shade_backward(pix, depth, normals, albedo, sh, pixels, corners, height, width, g_colour, g_mu, g_depth)
+    empty = np.zeros((0, 4), pix.dtype)
+    return _shade_backward_halves(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+                                  empty if g_image is None else g_image, empty if g_geometry is None else g_geometry,
+                                  True)
+
+
+@numba.njit(cache=True, nogil=True)
+def _split_kernel(image, rgb, alpha):  # pragma: no cover - compiled
+    for p in range(image.shape[0]):
+        rgb[p, 0], rgb[p, 1], rgb[p, 2] = image[p, 0], image[p, 1], image[p, 2]
+        alpha[p] = image[p, 3]
+
+
+@numba.njit(cache=True, nogil=True)
+def _merge_kernel(g_rgb, g_alpha, out):  # pragma: no cover - compiled
+    has_rgb = g_rgb.shape[0] > 0
+    has_alpha = g_alpha.shape[0] > 0
+    for p in range(out.shape[0]):
+        out[p, 0] = g_rgb[p, 0] if has_rgb else 0.0
+        out[p, 1] = g_rgb[p, 1] if has_rgb else 0.0
+        out[p, 2] = g_rgb[p, 2] if has_rgb else 0.0
+        out[p, 3] = g_alpha[p] if has_alpha else 0.0
+
+
+def split_coverage(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 4) colour + coverage -> contiguous (P, 3) colour and (P,) coverage (one pass; numpy's
+    strided copy of the first three columns costs ~0.5 ms at 256^2)."""
+    rgb = np.empty((image.shape[0], 3), image.dtype)
+    alpha = np.empty(image.shape[0], image.dtype)
+    _split_kernel(image, rgb, alpha)
+    return rgb, alpha
+
+
+def merge_coverage_grads(g_rgb: np.ndarray | None, g_alpha: np.ndarray | None, pixels: int,
+                         dtype: np.dtype) -> np.ndarray:
+    """The (P, 4) gradient of `split_coverage`'s input from those of its outputs ((P, 3) and
+    (P,), any strides, e.g. the zero-stride gradient of a sum; None: zero)."""
+    out = np.empty((pixels, 4), dtype)
+    _merge_kernel(np.zeros((0, 3), dtype) if g_rgb is None else g_rgb,
+                  np.zeros(0, dtype) if g_alpha is None else g_alpha, out)
+    return out
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")

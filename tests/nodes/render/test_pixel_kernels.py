@@ -195,15 +195,16 @@ def test_two_threads_give_the_same_bits_as_one(rng, monkeypatch):
 
     monkeypatch.setattr(halves, "MIN_PARALLEL_WORK", 0)
     before = torch.get_num_threads()
-    for batch, dtype in ((1, torch.float32), (2, torch.float64)):
+    for batch, dtype, supersample in ((1, torch.float32, 2), (2, torch.float64, 2), (1, torch.float32, 1)):
         verts, faces, e, k = _bumpy_sphere(rng, batch, dtype)
         albedo = torch.as_tensor(rng.uniform(0.2, 1, (1, verts.shape[1], 3)), dtype=dtype)
         sh = torch.as_tensor(sh_from_lights(0.4, (0.3, -0.5, -1.0), 0.8), dtype=dtype)[None]
         runs = []
         try:
-            for threads in (1, 2):
+            for threads in (1, 2):  # 1: the raster in one pass; 2: two bands of rows side by side
                 torch.set_num_threads(threads)
-                runs.append(_render_both(verts, faces, e, k, albedo, sh, supersample=2)[0])
+                runs.append(_render_both(verts, faces, e, k, albedo, sh, supersample=supersample,
+                                         adjacency=triangle_adjacency(faces))[0])
         finally:
             torch.set_num_threads(before)
         for a, b in zip(*runs):
@@ -260,3 +261,47 @@ def test_rasterizer_matches_a_plain_z_buffer(rng):
     np.testing.assert_array_equal(tri[0], ref_tri)
     np.testing.assert_array_equal(zbuf[0], ref_z)
     assert (tri[0] >= len(faces)).sum() > 200 and (tri[0][tri[0] >= 0] < len(faces)).sum() > 200
+
+
+@pytest.mark.parametrize("loss_on", ["image", "alpha", "geometry"])
+def test_compiled_render_gradients_of_one_output_at_a_time(rng, loss_on):
+    # without supersampling the compiled path returns colour, coverage and geometry as separate
+    # contiguous tensors (`_CompiledImage` split): a loss on one of them alone (the others get no
+    # gradient) must match the torch path
+    verts, faces, e, k = _bumpy_sphere(rng, 2)
+    albedo = torch.as_tensor(rng.uniform(0.2, 1, (1, verts.shape[1], 3)))
+    sh = torch.as_tensor(sh_from_lights(0.4, (0.3, -0.5, -1.0), 0.8), dtype=torch.float64)[None]
+    grads = []
+    for compiled in (True, False):
+        leaves = [t.clone().requires_grad_() for t in (verts, albedo, sh)]
+        bg = torch.full((1, 48, 48, 3), 0.3, dtype=torch.float64, requires_grad=True)
+        out = render_mesh(leaves[0], faces, e, k, 48, 48, albedo=leaves[1], sh=leaves[2], background=bg,
+                          adjacency=triangle_adjacency(faces), compiled=compiled)
+        if compiled:
+            assert out.image.is_contiguous() and out.alpha.is_contiguous()
+        g = torch.Generator().manual_seed(5)
+        if loss_on == "image":
+            loss = (out.image * torch.randn(out.image.shape, generator=g, dtype=torch.float64)).sum()
+        elif loss_on == "alpha":
+            loss = (out.alpha * torch.randn(out.alpha.shape, generator=g, dtype=torch.float64)).sum()
+        else:
+            loss = out.depth.sum() + out.barycentrics[..., 0].sum()
+        loss.backward()
+        grads.append([t.grad for t in leaves] + [bg.grad])
+    for name, a, b in zip(["vertices", "albedo", "sh", "background"], *grads):
+        if b is None or not b.abs().max() > 0:  # no path from this loss (the torch path may give zeros)
+            assert a is None or not a.abs().max() > 0, name
+            continue
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=0, atol=1e-10 * b.abs().max().item(), err_msg=name)
+
+
+def test_covered_pixels_match_numpy(rng):
+    verts, faces, e, k = _bumpy_sphere(rng, 2)
+    pix = verts[..., :2] / verts[..., 2:] * 150.0 + 23.5
+    tri, _ = raster.rasterize_triangles(pix.numpy(), verts[..., 2].numpy(), faces, 48, 48,
+                                        triangle_dtype=np.int64)
+    assert tri.dtype == np.int64 and (tri >= 0).any() and (tri < 0).any()
+    pixels, corners = raster.covered_pixels(tri, faces)
+    expected = np.flatnonzero(tri.reshape(-1) >= 0)
+    np.testing.assert_array_equal(pixels, expected)
+    np.testing.assert_array_equal(corners, faces[tri.reshape(-1)[expected]])
