@@ -43,7 +43,8 @@ face (eye 0, the subject's right: outer then inner corner; eye 1: inner then out
 
 FAILURE_REASONS = ("", "no face found", "face presence below min_presence",
                    "the followed face is lost; other faces are in view",
-                   "two reads of the face disagree (the face mesh is unsure of it)")
+                   "two reads of the face disagree (the face mesh is unsure of it)",
+                   "the re-found face's size jumped from when it was last seen (partly hidden?)")
 """Why a frame failed, by code (`nodes.landmarks.face_tracker.track_faces`; 0: it did not)."""
 
 
