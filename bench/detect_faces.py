@@ -60,6 +60,11 @@ from TrackFaces' own read of the clean photo and 19% from a hand annotation of 8
 read of the clean photo: 11%); his frames are also scored against that annotation (same eye
 distance), in the last row.
 
+With `--talking-head` (alone): `landmarks.TrackFaces` on `cases.make_talking_head` (60 frames,
+480 x 640: head turns, nod, roll, zoom, a quick dart with motion blur, dimming light, a dark hand
+over the face in frames 30-35, grace_hopper beside her): failed frames, by the hand's coverage,
+and the error of the frames read.
+
 Then, with `--faceless`, `landmarks.TrackFaces` on `FACELESS` (18 skimage photos without a face),
 each plain, dark, blurred and noisy: the frames where a face was read must stay 0.
 """
@@ -93,8 +98,12 @@ def main() -> None:
     parser.add_argument("--only-check", action="store_true", help="only the acceptance check")
     parser.add_argument("--photos", nargs="+", default=None, help="photos of the acceptance check (cases.PHOTOS)")
     parser.add_argument("--faceless", action="store_true", help="also TrackFaces on face-free photos")
+    parser.add_argument("--talking-head", action="store_true", help="only TrackFaces on the talking-head video")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.talking_head:
+        talking_head_rows()
+        return
     if args.only_check:
         check_rows(args.photos)
         if args.faceless:
@@ -326,6 +335,29 @@ def check_rows(photos: list[str] | None = None) -> None:
         if photo in HAND_ANNOTATIONS:
             print(row(f"{photo} against the hand annotation ({len(HAND_ANNOTATIONS[photo])} points)",
                       [r for r in records if r[0] == photo], 5))
+
+
+def talking_head_rows() -> None:
+    """Print `landmarks.TrackFaces` on `cases.make_talking_head` (60 frames, 480 x 640; see the
+    module docstring): failed frames, by how much of the face the hand covers, and the error."""
+    from cases import make_talking_head
+
+    from nodes.landmarks.correspondence import MEDIAPIPE_TO_68
+    from nodes.landmarks.face_tracker import track_faces
+
+    video = make_talking_head("astronaut", count=60)
+    out = track_faces(video.frames, with_iris=False)
+    error = np.linalg.norm(out.points[:, MEDIAPIPE_TO_68] - video.points[:, MEDIAPIPE_TO_68], axis=-1).mean(-1) / video.eye * 100
+    ok, hidden = ~out.failed, video.occluded >= 0.5
+    after = int(np.argmax(ok & (np.arange(len(ok)) > np.nonzero(hidden)[0].max())))
+    print(f"\ntalking head ({len(ok)} frames, 480 x 640, eye distance {video.eye.min():.0f}-{video.eye.max():.0f} px): "
+          f"failed {int(out.failed.sum())} ({100 * out.failed.mean():.0f}%; frames {np.nonzero(out.failed)[0].tolist()}, "
+          f"reasons {out.reasons[out.failed].tolist()}), of them where the hand covers under half the face box "
+          f"{int((out.failed & ~hidden).sum())}; hand coverage of the failed frames "
+          f"{' '.join(f'{c:.2f}' for c in video.occluded[out.failed])}; error of the read frames: median "
+          f"{np.median(error[ok]):.1f}%, largest {error[ok].max():.1f}%, over 10%: {int((error[ok] > 10).sum())}; "
+          f"detector ran on frames {np.nonzero(out.detected)[0].tolist()}; first frame read after the hand: {after} "
+          f"({error[after]:.1f}%)")
 
 
 FACELESS = ("coffee", "brick", "rocket", "chelsea", "coins", "text", "grass", "gravel", "moon", "page", "horse",
