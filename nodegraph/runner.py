@@ -31,7 +31,7 @@ from .pathcheck import check_output_paths
 from .ports import PortType
 from .progress import Reporter, progress_mode, warnings_as_events
 from .plan_names import TaskName
-from .schedule import Plan, plan_run
+from .schedule import Plan, check_run_frames, plan_run
 from .staging import commit, discard, new_token
 from .tasks import IN_PROCESS, OK_STATUSES, TaskResult, TaskSpec, combine, preload
 
@@ -172,10 +172,11 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
     # with --no-cache hung forever: pxr's library initialisers and torch's both waited on the other).
     for attempt in range(2):
         plan = plan_run(graph, frames=frames, chunk=chunk, cache=store, targets=list(outputs or []) or None,
-                        force=force, device=device)
+                        force=force, device=device, check_frames=False)
         if attempt == 0:
             # outputs that would destroy inputs, unwritable folders, outputs in the cache: exit 2
             check_output_paths(plan, cache_root=store.root if store is not None else None)
+            check_run_frames(plan)  # then what the run's frames cannot give (e.g. no training row)
         names = plan.needed()
         specs = task_specs(plan, names, store, mode, token)
         dsk = dask_graph(plan, names, specs)

@@ -28,7 +28,7 @@ from .params import field_flag
 from .plan_names import PortSlot, TaskName
 
 __all__ = ["Piece", "TaskPlan", "Plan", "PortSlot", "TaskName", "plan_run", "chunk_bounds", "explain_miss",
-           "parse_frames"]
+           "parse_frames", "check_run_frames"]
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,7 @@ def _mode(node: Node, connected: Iterable[str]) -> str:
 
 def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
              cache: Cache | None = None, targets: list[str] | None = None,
-             force: Iterable[str] = (), device: str = "cpu") -> Plan:
+             force: Iterable[str] = (), device: str = "cpu", check_frames: bool = True) -> Plan:
     """Turn a validated graph into tasks with cache keys.
 
     Args:
@@ -162,6 +162,9 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         cache: where hits are looked up (None: no cache, everything runs).
         targets: node ids whose outputs are wanted (default: the sinks).
         force: node ids to recompute even when cached (with their descendants).
+        check_frames: call the nodes' `check_frames` hooks (`check_run_frames`) at the end; the
+            runner passes False and calls them after checking the output paths (a wrong output
+            path is reported before a data problem).
     Raises:
         GraphError: invalid graph, unknown target, or sources that disagree on the frame count.
         NodeError: a node rejected its parameters or files while planning (bad_input), or its
@@ -169,8 +172,7 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             in edge order) raised: a node can so refuse, before anything runs, what its
             producers' parameters and files already tell (e.g. a network file that does not fit
             the capture file's topology); or its optional `check_frames(frames, producers)`
-            hook, called once the run's frames are known, raised (e.g. a trainer whose
-            captures, as the run slices them, are too short to give one training row).
+            hook raised (`check_run_frames`).
     """
     graph.check()
     order = graph.topological_order()
@@ -226,13 +228,6 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
         frames = range(0, next(iter(counts.values())))
     if len(frames) == 0:
         raise GraphError([GraphIssue("", "", "the frame range is empty")])
-    for nid in order:  # optional check of a node against the run's frames (e.g. too few to train on)
-        check = getattr(nodes[nid], "check_frames", None)
-        if check is not None:
-            try:
-                check(frames, {port: [nodes[src.node] for src in sources] for port, sources in ups[nid].items()})
-            except Exception as err:
-                raise wrap_error(nodes[nid], err, bad_input=True) from err
 
     forced = set(force)
     for nid in list(forced):
@@ -295,7 +290,28 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             plan.tasks[name] = task
             names.append(name)
         plan.by_node[nid] = names
+    if check_frames:
+        check_run_frames(plan)
     return plan
+
+
+def check_run_frames(plan: Plan) -> None:
+    """Call each node's optional `check_frames(frames, producers)` hook with the run's frames
+    (input port -> the producing node instances, in edge order), before anything runs.
+
+    Raises:
+        NodeError: (bad input) a hook raised: e.g. a trainer whose captures, as the run slices
+            them, cannot give one training row (`--frames 0:4`).
+    """
+    graph, nodes = plan.graph, plan.nodes
+    for nid in graph.topological_order():
+        check = getattr(nodes[nid], "check_frames", None)
+        if check is not None:
+            ups = graph.upstream_lists(nid)
+            try:
+                check(plan.frames, {port: [nodes[src.node] for src in sources] for port, sources in ups.items()})
+            except Exception as err:
+                raise wrap_error(nodes[nid], err, bad_input=True) from err
 
 
 def _hash_inputs(node: Node, paths: Iterable[Path], hash_file: Callable[[Path], str]) -> list[str]:

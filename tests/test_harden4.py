@@ -130,3 +130,19 @@ def test_cache_under_proc_is_refused_before_anything_runs(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "--cache" in err and "/proc" in err and "Traceback" not in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz"]
+
+
+def test_an_output_path_problem_is_reported_before_a_frames_problem(tmp_path):
+    """The runner checks output paths, then the nodes' check_frames: a run with both problems
+    names the output (what a user fixes first; the data check needs the right files)."""
+    from nodegraph import GraphError
+
+    (tmp_path / "a_file").write_text("a file")
+    graph = Graph.load(GRAPHS / "dynamics_train.json")
+    graph.apply({"model": str(tmp_path / "a_file" / "f.safetensors"), "synthesis_model": str(tmp_path / "h.safetensors")})
+    with pytest.raises(GraphError, match="'save_removal'.*is a file, not a folder"):
+        runner.run(graph, frames=range(0, 4), scheduler="sync", cache=False, progress="none")
+    graph.apply({"model": str(tmp_path / "f.safetensors")})
+    with pytest.raises(NodeError, match="'train_removal'.*--frames 0:4"):
+        runner.run(graph, frames=range(0, 4), scheduler="sync", cache=False, progress="none")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
