@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from nodes.synth.dynamics import _coupling_matrix, smoothing_matrix
+from nodes.synth.dynamics import _coupling_matrix, _kappa, _moving_kappas, smoothing_matrix
 from nodes.synth.skin_kernels import GaussianSmoothing, integrate
 
 
@@ -34,6 +34,35 @@ def test_gaussian_smoothing_isolated_point_and_bad_shape():
     np.testing.assert_allclose(got, [(2 + 3 * w) / (2 + w), (6 + w) / (2 + w), 5.0], rtol=1e-12)
     with pytest.raises(ValueError, match="values"):
         GaussianSmoothing(points) @ np.zeros(4)
+
+
+def test_gaussian_smoothing_columns_do_not_mix():
+    """A product over many columns gives each column bit for bit as a product over it alone
+    (what lets simulate_dynamics smooth several blocks of frames in one product)."""
+    points = _cloud()
+    values = np.random.default_rng(3).standard_normal((len(points), 37))
+    smoothing = GaussianSmoothing(points, sigma_cm=1.5)
+    whole = smoothing @ values
+    for a, b in ((0, 16), (16, 33), (33, 37)):
+        assert np.array_equal(whole[:, a:b], smoothing @ values[:, a:b])
+
+
+@pytest.mark.parametrize("segments, columns", [(1, 256), (2, 8), (3, 1)])
+def test_moving_kappas_equal_blockwise_kappa(segments, columns):
+    """Blocks smoothed together equal `_kappa` block by block, bit for bit, for any grouping
+    (`columns`: one block per product, two, or all), the last block short."""
+    rest = _cloud(300)
+    edges = np.array([(i, j) for i in range(len(rest)) for j in (i + 1, i + 7) if j < len(rest)])
+    rng = np.random.default_rng(4)
+    frames = 11
+    shapes = (rest + 0.2 * rng.standard_normal((segments, frames, len(rest), 3))).astype(np.float32)
+    smoothing = GaussianSmoothing(rest, sigma_cm=1.5)
+    starts = range(0, frames, 4)
+    got = list(_moving_kappas(shapes, rest, edges, 4.0, smoothing, starts, 4, columns=columns))
+    assert [f0 for f0, _ in got] == list(starts)
+    for f0, kappa in got:
+        expected = _kappa(shapes[:, f0:f0 + 4], rest, edges, 4.0, smoothing)
+        assert kappa.dtype == np.float32 and np.array_equal(kappa, expected)
 
 
 def test_integrate_equals_the_numpy_loop():
