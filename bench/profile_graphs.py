@@ -19,7 +19,10 @@ tables per graph:
   writers): the same columns, the stage's task seconds per frame and its critical-path seconds;
 
 then the run's wall time, its critical path, and the rest (wall minus critical path: waiting
-for a free worker, scheduling, the workers' first imports inside tasks). Before both, the
+for a free worker, scheduling, the workers' first imports inside tasks); then how many tasks ran
+at once over the wall (0, 1, 2+ with 2 workers: the seconds with one task running are seconds a
+worker sat idle) and the nodes that ran alone longest (a serial chain: where a faster node, or one
+that uses both cores, shortens the wall). Before both, the
 import time of the packages a run loads (each in a fresh interpreter, the least of three).
 Every run is uncached (`cache=False`) with the `threads` scheduler and `--workers` workers
 (2, as `nodegraph run` does by default). Timings depend on the machine's load: print `uptime`
@@ -163,6 +166,38 @@ def print_tables(title: str, result, frames: int, wall: float) -> None:
             print(f"  failed: {error['message']}")
 
 
+def concurrency(result, began: float, ended: float, workers: int) -> tuple[list[float], dict[str, float]]:
+    """How many tasks ran at once over the run: seconds of the wall (`began` to `ended`,
+    time.time()) with 0, 1, ..., `workers` or more tasks running, and per node the seconds it ran
+    alone (the only task running: the other workers idle)."""
+    events = []
+    for task in result.tasks:
+        start = float(task.get("started") or 0.0)
+        if task.get("status") == "executed" and start > 0:
+            events.append((start, float(task.get("seconds") or 0.0), task["node"]))
+    cuts = sorted({began, ended, *(s for s, _, _ in events), *(s + d for s, d, _ in events)})
+    cuts = [c for c in cuts if began <= c <= ended]
+    at_once = [0.0] * (workers + 1)
+    alone: dict[str, float] = collections.defaultdict(float)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        mid = 0.5 * (a + b)
+        running = [node for s, d, node in events if s <= mid < s + d]
+        at_once[min(len(running), workers)] += b - a
+        if len(running) == 1:
+            alone[running[0]] += b - a
+    return at_once, dict(alone)
+
+
+def print_concurrency(result, began: float, ended: float, workers: int) -> None:
+    at_once, alone = concurrency(result, began, ended, workers)
+    wall = max(ended - began, 1e-9)
+    parts = ", ".join(f"{n}{'+' if n == workers else ''} {s:.1f} s ({100 * s / wall:.0f}%)" for n, s in enumerate(at_once))
+    print(f"  tasks running at once over the wall: {parts}")
+    top = sorted(alone.items(), key=lambda kv: -kv[1])[:8]
+    if top and workers > 1:
+        print("  ran alone (the other workers idle): " + ", ".join(f"{n} {s:.1f} s" for n, s in top))
+
+
 def resize_video(folder: Path, frames: int, size: int) -> None:
     """The 256^2 plates resized to `size`^2 in place (bicubic), as a higher-resolution camera."""
     from PIL import Image
@@ -200,25 +235,27 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = args.keep or Path(tmp)
         if not args.skip_demo:
-            t = time.perf_counter()
+            t, began = time.perf_counter(), time.time()
             result = runner.run(ROOT / "graphs" / "demo.json", cache=False, workers=args.workers,
                                 scheduler=args.scheduler,
                                 parameters={"num_frames": args.demo_frames,
                                             **{k: str(out / "demo" / v) for k, v in DEMO_OUTPUTS.items()}})
             print_tables("graphs/demo.json", result, args.demo_frames, time.perf_counter() - t)
+            print_concurrency(result, began, time.time(), args.workers)
         if not args.skip_video:
             video = out / "video"
             video.mkdir(parents=True, exist_ok=True)
             astronaut_video(video, args.video_frames)
             resize_video(video, args.video_frames, args.video_size)
             pattern = str(video / "plate.%04d.png")
-            t = time.perf_counter()
+            t, began = time.perf_counter(), time.time()
             result = runner.run(ROOT / "graphs" / "fit_video_temporal.json", cache=False, workers=args.workers,
                                 scheduler=args.scheduler,
                                 parameters={"images": pattern, "output": str(video / "fit.npz"),
                                             "report": str(video / "fit"), "motion_report": str(video / "motion")})
             print_tables(f"graphs/fit_video_temporal.json (astronaut video, {args.video_size}^2)", result,
                          args.video_frames, time.perf_counter() - t)
+            print_concurrency(result, began, time.time(), args.workers)
         print(f"load average {os.getloadavg()[0]:.1f} at the end")
 
 

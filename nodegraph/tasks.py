@@ -80,10 +80,11 @@ class TaskResult:
     error: dict[str, Any] | None = None
     seconds: float = 0.0
     staged: tuple[StagedFile, ...] = ()  # a writer's files held back in staging folders
+    started: float = 0.0  # time.time() when the task began (0: never ran), for timelines of a run
 
     def meta(self) -> dict[str, Any]:
         return {"name": str(self.name), "node": self.node, "frames": list(self.frames), "status": self.status,
-                "error": self.error, "seconds": self.seconds}
+                "error": self.error, "seconds": self.seconds, "started": self.started}
 
 
 def _trim(node: Node, values: dict[str, PortType], frames: tuple[int, int],
@@ -168,6 +169,7 @@ _COMBINED = _CombinedInputs()
 def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
     """Run one task on its upstream results (dask calls this in a worker)."""
     start = time.perf_counter()
+    began = time.time()
     bad = [d for d in deps if d.status not in OK_STATUSES]
     if bad:
         return TaskResult(spec.name, spec.node, spec.out_frames, "skipped",
@@ -198,12 +200,12 @@ def compute_task(spec: TaskSpec, *deps: TaskResult) -> TaskResult:
         }
         return TaskResult(spec.name, spec.node, spec.out_frames, "failed", error=record,
                           seconds=time.perf_counter() - start,
-                          staged=tuple(stage.entries()) if stage is not None else ())
+                          staged=tuple(stage.entries()) if stage is not None else (), started=began)
     staged = tuple(stage.entries()) if stage is not None else ()
     if spec.cacheable and spec.cache_root is not None:
         _STORES.submit(_store_task, spec, values, {entry.final: entry.staged for entry in staged})
     return TaskResult(spec.name, spec.node, spec.out_frames, "executed", values,
-                      seconds=time.perf_counter() - start, staged=staged)
+                      seconds=time.perf_counter() - start, staged=staged, started=began)
 
 
 def _compute(spec: TaskSpec, deps: Sequence[TaskResult]) -> dict[str, PortType]:
