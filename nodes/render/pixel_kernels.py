@@ -40,7 +40,7 @@ import numpy as np
 from .halves import run_halves
 
 __all__ = ["normals_forward", "normals_backward", "shade_forward", "shade_backward", "shade_image",
-           "shade_image_backward", "split_coverage", "merge_coverage_grads", "antialias_forward", "antialias_backward", "project_forward", "project_backward"]
+           "shade_image_backward", "antialias_forward", "antialias_backward", "project_forward", "project_backward"]
 
 _Y0, _Y1, _Y2A, _Y2B, _Y2C = 0.282094791773878, 0.488602511902920, 1.092548430592079, \
     0.315391565252520, 0.546274215296040
@@ -501,43 +501,6 @@ def shade_image_backward(pix: np.ndarray, depth: np.ndarray, normals: np.ndarray
     return _shade_backward_halves(pix, depth, normals, albedo, sh, pixels, corners, height, width,
                                   empty if g_image is None else g_image, empty if g_geometry is None else g_geometry,
                                   True)
-
-
-@numba.njit(cache=True, nogil=True)
-def _split_kernel(image, rgb, alpha):  # pragma: no cover - compiled
-    for p in range(image.shape[0]):
-        rgb[p, 0], rgb[p, 1], rgb[p, 2] = image[p, 0], image[p, 1], image[p, 2]
-        alpha[p] = image[p, 3]
-
-
-@numba.njit(cache=True, nogil=True)
-def _merge_kernel(g_rgb, g_alpha, out):  # pragma: no cover - compiled
-    has_rgb = g_rgb.shape[0] > 0
-    has_alpha = g_alpha.shape[0] > 0
-    for p in range(out.shape[0]):
-        out[p, 0] = g_rgb[p, 0] if has_rgb else 0.0
-        out[p, 1] = g_rgb[p, 1] if has_rgb else 0.0
-        out[p, 2] = g_rgb[p, 2] if has_rgb else 0.0
-        out[p, 3] = g_alpha[p] if has_alpha else 0.0
-
-
-def split_coverage(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(P, 4) colour + coverage -> contiguous (P, 3) colour and (P,) coverage (one pass; numpy's
-    strided copy of the first three columns costs ~0.5 ms at 256^2)."""
-    rgb = np.empty((image.shape[0], 3), image.dtype)
-    alpha = np.empty(image.shape[0], image.dtype)
-    _split_kernel(image, rgb, alpha)
-    return rgb, alpha
-
-
-def merge_coverage_grads(g_rgb: np.ndarray | None, g_alpha: np.ndarray | None, pixels: int,
-                         dtype: np.dtype) -> np.ndarray:
-    """The (P, 4) gradient of `split_coverage`'s input from those of its outputs ((P, 3) and
-    (P,), any strides, e.g. the zero-stride gradient of a sum; None: zero)."""
-    out = np.empty((pixels, 4), dtype)
-    _merge_kernel(np.zeros((0, 3), dtype) if g_rgb is None else g_rgb,
-                  np.zeros(0, dtype) if g_alpha is None else g_alpha, out)
-    return out
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")

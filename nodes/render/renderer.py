@@ -60,9 +60,9 @@ from torch import Tensor
 from ..geometry.camera import project_points_torch
 from ..geometry.image import box_downsample
 from ..geometry.mesh import triangle_adjacency
-from .pixel_kernels import (antialias_backward, antialias_forward, merge_coverage_grads, normals_backward,
-                            normals_forward, project_backward, project_forward, shade_backward, shade_forward,
-                            shade_image, shade_image_backward, split_coverage)
+from .pixel_kernels import (antialias_backward, antialias_forward, normals_backward, normals_forward,
+                            project_backward, project_forward, shade_backward, shade_forward, shade_image,
+                            shade_image_backward)
 from .raster import covered_pixels, rasterize_triangles, silhouette_pairs
 
 __all__ = ["RenderOutput", "sh_basis", "sh_from_lights", "vertex_normals",
@@ -422,17 +422,12 @@ class _CompiledImage(torch.autograd.Function):
     geometry buffer (depth, barycentrics) filled in the same pass, then the silhouette blends
     (`antialias_forward`). The backward reads the image and geometry gradients at the covered
     pixels and the blended pairs only (plus the background's at the uncovered pixels, when
-    the background needs one). Same arithmetic as `shade_pixels` + compositing + `_antialias`.
-
-    Outputs: with `split`, the colour (B, H, W, 3), the coverage (B, H, W) and the geometry
-    (B, H, W, 4) as separate contiguous tensors (a loss on the colour then reduces a contiguous
-    tensor and back-propagates without a slice's zero-filled (B, H, W, 4) gradient: ~0.8 ms of a
-    256^2 render's backward); else the (B, H, W, 4) colour + coverage and the geometry."""
+    the background needs one). Same arithmetic as `shade_pixels` + compositing + `_antialias`."""
 
     @staticmethod
     def forward(ctx, pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor,  # type: ignore[override]
                 background: Tensor, pixels: np.ndarray, corners: np.ndarray, faces: np.ndarray, height: int,
-                width: int, pairs: tuple[np.ndarray, ...] | None, split: bool) -> tuple[Tensor, ...]:
+                width: int, pairs: tuple[np.ndarray, ...] | None) -> tuple[Tensor, Tensor]:
         ctx.set_materialize_grads(False)
         arrays = tuple(t.detach().contiguous().numpy() for t in (pix, depth, normals, albedo, sh))
         bg = background.detach().to(pix.dtype).contiguous().numpy()
@@ -440,28 +435,14 @@ class _CompiledImage(torch.autograd.Function):
         blended = antialias_forward(image, arrays[0], faces, height, width, *pairs) if pairs else image
         ctx.arrays = arrays + (pixels, corners, height, width)
         ctx.image, ctx.faces, ctx.pairs, ctx.bg_shape = image, faces, pairs, tuple(background.shape)
-        ctx.dtype, ctx.split = pix.dtype, split
+        ctx.dtype = pix.dtype
         shape = (depth.shape[0], height, width, 4)
-        geometry_t = torch.from_numpy(geometry).reshape(shape)
-        if split:
-            rgb, alpha = split_coverage(blended)
-            return torch.from_numpy(rgb).reshape(shape[:3] + (3,)), torch.from_numpy(alpha).reshape(shape[:3]), geometry_t
-        return torch.from_numpy(blended).reshape(shape), geometry_t
+        return torch.from_numpy(blended).reshape(shape), torch.from_numpy(geometry).reshape(shape)
 
     @staticmethod
-    def backward(ctx, *grads_out: Tensor | None):  # type: ignore[override]
-        if ctx.split:
-            g_rgb, g_alpha, g_geometry = grads_out
-            g_image = None
-            if g_rgb is not None or g_alpha is not None:  # the (B * H * W, 4) colour + coverage gradient
-                g_image = torch.from_numpy(merge_coverage_grads(
-                    None if g_rgb is None else g_rgb.detach().to(ctx.dtype).numpy().reshape(-1, 3),
-                    None if g_alpha is None else g_alpha.detach().to(ctx.dtype).numpy().reshape(-1),
-                    ctx.image.shape[0], ctx.image.dtype))
-        else:
-            g_image, g_geometry = grads_out
+    def backward(ctx, g_image: Tensor | None, g_geometry: Tensor | None):  # type: ignore[override]
         if g_image is None and g_geometry is None:
-            return (None,) * 13
+            return (None,) * 12
         arrays = ctx.arrays
         pix = arrays[0]
         g_colour = g_pix = None
@@ -482,7 +463,7 @@ class _CompiledImage(torch.autograd.Function):
             g_background = g.sum(0, keepdim=True) if ctx.bg_shape[0] == 1 else g
             if ctx.bg_shape[1] == 1:
                 g_background = g_background.sum(1, keepdim=True)
-        return tuple(torch.from_numpy(g) for g in grads) + (g_background,) + (None,) * 7
+        return tuple(torch.from_numpy(g) for g in grads) + (g_background,) + (None,) * 6
 
 
 def _shade_torch(pix: Tensor, depth: Tensor, normals: Tensor, albedo: Tensor, sh: Tensor, pixels: Tensor,
@@ -647,12 +628,8 @@ def render_mesh(vertices: Tensor, faces: Tensor | np.ndarray, world_to_camera: T
         if antialias:
             pairs = silhouette_pairs(tri_np, z_np, pix.detach().numpy(), faces_c, adj)
             pairs = pairs if len(pairs[0]) else None
-        if s == 1:  # colour and coverage as separate contiguous tensors (`_CompiledImage`)
-            rgb, alpha, geometry = _CompiledImage.apply(pix, depth_v, normals, albedo, sh, background_rows, idx_np,
-                                                        corners.numpy(), faces_c, hs, ws, pairs, True)
-            return RenderOutput(rgb, alpha, geometry[..., 0], tri, geometry[..., 1:4])
         image, geometry = _CompiledImage.apply(pix, depth_v, normals, albedo, sh, background_rows, idx_np,
-                                               corners.numpy(), faces_c, hs, ws, pairs, False)
+                                               corners.numpy(), faces_c, hs, ws, pairs)
         depth = geometry[..., 0]
         bary = geometry[..., 1:4]
     else:
