@@ -263,6 +263,18 @@ def pyramid_down(images: Tensor) -> Tensor:
 
 
 # -- crops ---------------------------------------------------------------------------------
+_UNIT_STEPS: dict[tuple[int, torch.device, torch.dtype], Tensor] = {}
+
+
+def _unit_steps(size: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """`(j + 1/2) / S` for j = 0 .. S - 1, (S,), cached per size, device and dtype (read only)."""
+    key = (size, device, dtype)
+    steps = _UNIT_STEPS.get(key)
+    if steps is None:
+        steps = _UNIT_STEPS[key] = (torch.arange(size, device=device, dtype=dtype) + 0.5) / size
+    return steps
+
+
 def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int,
                     angles: Tensor | np.ndarray | None = None) -> Tensor:
     """Crop each image to its box and resize to size x size, bilinearly (differentiable in pixels).
@@ -280,51 +292,117 @@ def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int,
             centre samples the image at `centre + R(angle) d`, so a face rolled by `angle`
             comes out upright.
     Returns:
-        (B, S, S, C); samples outside the image are 0 (black).
+        (B, S, S, C) contiguous; samples outside the image are 0 (black).
 
     Raises:
-        ValueError: `images` is not 4-D, or `boxes` / `angles` do not have one row per image.
+        ValueError: `images` is not 4-D, `boxes` / `angles` do not have one row per image or
+            are not finite.
+    Note:
+        The images sharing a shrink factor, a pooled window and whether they are turned are
+        cropped together: one `box_downsample` and one `grid_sample` per such group (one for a
+        whole batch of untilted crops with k <= 1, or of the same box), the sampling grid built
+        for the group at once from the cached `(j + 1/2) / S` steps. The coordinates are those of
+        cropping each image on its own, computed in the images' dtype in the same order (the
+        box's corner, side and centre rounded once from float64), so the crops are the same
+        to the bit.
     """
     _check_images(images)
+    n, height, width, _ = images.shape
+    dtype, device = images.dtype, images.device
     boxes = torch.as_tensor(np.asarray(boxes, np.float64) if not isinstance(boxes, Tensor) else boxes,
-                            dtype=images.dtype, device=images.device).reshape(-1, 4)
-    if len(boxes) != len(images):
-        raise ValueError(f"boxes: expected shape ({len(images)}, 4), found {tuple(boxes.shape)}")
+                            dtype=dtype, device=device).reshape(-1, 4)
+    if len(boxes) != n:
+        raise ValueError(f"boxes: expected shape ({n}, 4), found {tuple(boxes.shape)}")
+    # the boxes as the images' dtype rounds them, in float64 for the window and k arithmetic
+    box = boxes.detach().cpu().to(torch.float64).numpy()
+    if not np.isfinite(box).all():
+        raise ValueError(f"boxes: expected finite x0 y0 x1 y1, found {box[~np.isfinite(box).all(1)][0].tolist()}")
     if angles is not None:
         angles = np.asarray(angles.detach().cpu() if isinstance(angles, Tensor) else angles, np.float64).reshape(-1)
-        if len(angles) != len(images):
-            raise ValueError(f"angles: expected shape ({len(images)},), found {angles.shape}")
-    out = []
-    t = (torch.arange(size, device=images.device, dtype=images.dtype) + 0.5) / size
-    for b in range(len(images)):  # per image: each has its own box and shrink factor
-        x0, y0, x1, y1 = boxes[b].tolist()
-        img = images[b:b + 1]
-        k = int(min(x1 - x0, y1 - y0) / size)
-        offset, step = 0.0, 1.0
-        if k >= 2:  # box filter before the bilinear shrink; pooled pixel i covers k i .. k i + k - 1
-            # only the part of the image the crop samples (with a margin of 2 pooled pixels), cut
-            # at multiples of k so that the blocks are those of pooling the whole image
-            c = float(np.cos(angles[b])) if angles is not None else 1.0
-            s = float(np.sin(angles[b])) if angles is not None else 0.0
-            reach_x = (abs(c) * (x1 - x0) + abs(s) * (y1 - y0)) / 2 + 2 * k
-            reach_y = (abs(s) * (x1 - x0) + abs(c) * (y1 - y0)) / 2 + 2 * k
-            cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-            left = min(max(int(np.floor((cx - reach_x) / k)) * k, 0), (img.shape[2] - 1) // k * k)
-            top = min(max(int(np.floor((cy - reach_y) / k)) * k, 0), (img.shape[1] - 1) // k * k)
-            right = min(max(int(np.ceil((cx + reach_x) / k)) * k, left + k), img.shape[2] + (-img.shape[2]) % k)
-            bottom = min(max(int(np.ceil((cy + reach_y) / k)) * k, top + k), img.shape[1] + (-img.shape[1]) % k)
+        if len(angles) != n:
+            raise ValueError(f"angles: expected shape ({n},), found {angles.shape}")
+        if not np.isfinite(angles).all():
+            raise ValueError(f"angles: expected finite radians, found {angles.tolist()}")
+        turned = angles != 0.0
+        cos, sin = np.cos(angles), np.sin(angles)
+    else:
+        turned = np.zeros(n, bool)
+        cos, sin = np.ones(n), np.zeros(n)
+    if n == 0:
+        return images.new_zeros(0, size, size, images.shape[3])
+    x0, y0, x1, y1 = box.T
+    ks = np.trunc(np.minimum(x1 - x0, y1 - y0) / size).astype(np.int64)
+    # pooled window per image (k >= 2): the part of the image the crop samples, with a margin
+    # of 2 pooled pixels, cut at multiples of k so that the blocks are those of pooling the
+    # whole image (pooled pixel i covers k i .. k i + k - 1); 0s for k <= 1
+    windows = np.zeros((n, 4), np.int64)
+    pooled = ks >= 2
+    if pooled.any():
+        k = ks[pooled].astype(np.float64)
+        c, s = np.abs(cos[pooled]), np.abs(sin[pooled])
+        bw, bh = (x1 - x0)[pooled], (y1 - y0)[pooled]
+        reach_x, reach_y = (c * bw + s * bh) / 2 + 2 * k, (s * bw + c * bh) / 2 + 2 * k
+        cx, cy = ((x0 + x1) / 2)[pooled], ((y0 + y1) / 2)[pooled]
+        ki = ks[pooled]
+        left = np.minimum(np.maximum(np.floor((cx - reach_x) / k).astype(np.int64) * ki, 0), (width - 1) // ki * ki)
+        top = np.minimum(np.maximum(np.floor((cy - reach_y) / k).astype(np.int64) * ki, 0), (height - 1) // ki * ki)
+        right = np.minimum(np.maximum(np.ceil((cx + reach_x) / k).astype(np.int64) * ki, left + ki),
+                           width + (-width) % ki)
+        bottom = np.minimum(np.maximum(np.ceil((cy + reach_y) / k).astype(np.int64) * ki, top + ki),
+                            height + (-height) % ki)
+        windows[pooled] = np.stack([left, top, right, bottom], 1)
+    # corners relative to the window, as cropping the window alone computes them (float64)
+    x0, x1 = x0 - windows[:, 0], x1 - windows[:, 0]
+    y0, y1 = y0 - windows[:, 1], y1 - windows[:, 1]
+    keys = np.concatenate([np.maximum(ks, 1)[:, None], windows, turned[:, None]], 1)
+    if (keys == keys[0]).all():  # one group (a single image, or a batch cropped alike): no sort
+        groups, group_of = keys[:1], np.zeros(n, np.int64)
+    else:
+        groups, group_of = np.unique(keys, axis=0, return_inverse=True)
+        group_of = group_of.reshape(-1)
+    steps = _unit_steps(size, device, dtype)
+    # per image, rounded once to the images' dtype (as cropping each image on its own does):
+    # corner, side and centre along x and y, cos and sin of the angle; (8, B, 1, 1)
+    params = torch.from_numpy(np.stack([x0, x1 - x0, y0, y1 - y0, (x0 + x1) / 2, (y0 + y1) / 2, cos, sin]))
+    params = params.to(device=device, dtype=dtype).reshape(8, n, 1, 1)
+
+    crops, order = [], []
+    for g, (k, left, top, right, bottom, is_turned) in enumerate(groups.tolist()):
+        if len(groups) == 1:
+            rows, index, img, p = np.arange(n), None, images, params
+        else:
+            rows = np.flatnonzero(group_of == g)
+            index = torch.from_numpy(rows).to(device)
+            img, p = images.index_select(0, index), params.index_select(1, index)
+        if k >= 2:
             img = box_downsample(img[:, top:bottom, left:right], k)
-            offset, step = (k - 1) / 2.0, float(k)
-            x0, x1, y0, y1 = x0 - left, x1 - left, y0 - top, y1 - top
-        if angles is None or angles[b] == 0.0:
-            xs, ys = torch.broadcast_tensors((x0 + t * (x1 - x0))[None, :], (y0 + t * (y1 - y0))[:, None])
+        along = steps.reshape(1, 1, -1)  # (1, 1, S): x varies along a row, y down a column
+        corner_x, side_x, corner_y, side_y, centre_x, centre_y, c, s = p
+        if not is_turned:
+            xs = corner_x + along * side_x
+            ys = (corner_y + along * side_y).transpose(1, 2)
         else:  # offsets from the box centre, turned by the angle
-            dx, dy = torch.broadcast_tensors(((t - 0.5) * (x1 - x0))[None, :], ((t - 0.5) * (y1 - y0))[:, None])
-            c, s = float(np.cos(angles[b])), float(np.sin(angles[b]))
-            xs, ys = (x0 + x1) / 2 + c * dx - s * dy, (y0 + y1) / 2 + s * dx + c * dy
-        xy = torch.stack([(xs - offset) / step, (ys - offset) / step], -1)  # in pooled pixel-centre coordinates
-        out.append(sample_bilinear(img, xy[None], padding="zeros", method="grid_sample"))
-    return torch.cat(out)
+            dx = (along - 0.5) * side_x
+            dy = ((along - 0.5) * side_y).transpose(1, 2)
+            xs = (centre_x + c * dx) - s * dy
+            ys = (centre_y + s * dx) + c * dy
+        if k >= 2:  # to pooled pixel-centre coordinates
+            offset, step = (k - 1) / 2.0, float(k)
+            xs, ys = (xs - offset) / step, (ys - offset) / step
+        # grid_sample's align_corners=False coordinates: -1 and 1 are the image's outer edges
+        h, w = img.shape[1], img.shape[2]
+        gx, gy = torch.broadcast_tensors((xs + 0.5) / w * 2 - 1, (ys + 0.5) / h * 2 - 1)
+        grid = torch.stack([gx, gy], -1)
+        sampled = F.grid_sample(img.permute(0, 3, 1, 2), grid, mode="bilinear", padding_mode="zeros",
+                                align_corners=False)
+        crops.append(sampled.permute(0, 2, 3, 1))
+        order.append(rows)
+    if len(crops) == 1:
+        return crops[0].contiguous()
+    out = torch.cat(crops)
+    inverse = np.empty(n, np.int64)
+    inverse[np.concatenate(order)] = np.arange(n)
+    return out.index_select(0, torch.from_numpy(inverse).to(device))
 
 
 def crop_to_image(points: Tensor, boxes: Tensor, size: int) -> Tensor:
