@@ -26,7 +26,7 @@ that uses both cores, shortens the wall). Before both, the
 import time of the packages a run loads (each in a fresh interpreter, the least of three).
 Every run is uncached (`cache=False`) with the `threads` scheduler and `--workers` workers
 (2, as `nodegraph run` does by default). Timings depend on the machine's load: print `uptime`
-beside them.
+beside them. bench/profile_graphs_results.md holds a printed run.
 """
 
 from __future__ import annotations
