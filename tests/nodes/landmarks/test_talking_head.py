@@ -7,10 +7,11 @@ read every frame where the hand covers under half of her face (issue 26: under 5
 on talking-head videos), flag the frames it hides, never read a half-hidden face confidently
 wrong, and re-find her, not grace_hopper, after the hand.
 
-Measured (40 frames, 480 x 640, one thread): failed frames 20-25 (coverage 0.69-0.92 of the face
-box; 25: 0.53, reason 5, the re-found face's size jumped); 1.6-4.0% of the eye distance on the
-other frames. Without the size check (`refind_max_zoom` unbounded) frame 25 was read at presence
-0.98, 51% off. The bounds leave room for other CPUs and thread counts.
+Measured (40 frames, 480 x 640, one thread, TrackFaces 6): failed frames 20-25 (the hand covering
+0.69-0.92 of the face box; 25: 0.52, reason 5, the re-found face's size jumped); 1.6-3.7% of the
+eye distance on the other frames, 2.2% on frame 26 where she is re-found. Without the size check
+(`refind_max_zoom` unbounded) frame 25 was read at presence 0.99, 52.3% off. The bounds leave
+room for other CPUs and thread counts.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ def test_talking_head_is_followed_and_refound_after_the_hand(video, tracked):
     assert out.failed[video.occluded > 0.85].all()  # a hidden face is not read
     errors = _errors(out.points, video)
     ok = ~out.failed
-    assert errors[ok].max() < 7.0, errors.round(1)  # never a confident wrong read (measured at most 4.0)
+    assert errors[ok].max() < 7.0, errors.round(1)  # never a confident wrong read (measured at most 3.7)
     assert np.median(errors[ok]) < 4.0, np.median(errors[ok])
     after = OCCLUSION[1] + np.argmax(ok[OCCLUSION[1]:])  # the first frame read after the hand
     assert after <= OCCLUSION[1] + 1 and errors[after] < 5.0  # re-found: her, not grace_hopper
