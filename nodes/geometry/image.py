@@ -378,21 +378,29 @@ def crop_and_resize(images: Tensor, boxes: Tensor | np.ndarray, size: int,
             img = box_downsample(img[:, top:bottom, left:right], k)
         along = steps.reshape(1, 1, -1)  # (1, 1, S): x varies along a row, y down a column
         corner_x, side_x, corner_y, side_y, centre_x, centre_y, c, s = p
-        if not is_turned:
+        h, w = img.shape[1], img.shape[2]
+        # x, y of each crop pixel, in place in one (G, S, S, 2) grid (few large temporaries)
+        grid = torch.empty(len(rows), size, size, 2, dtype=dtype, device=device)
+        gx, gy = grid[..., 0], grid[..., 1]
+        if not is_turned:  # separable: x along a row, y down a column, broadcast into the grid
             xs = corner_x + along * side_x
             ys = (corner_y + along * side_y).transpose(1, 2)
+            if k >= 2:  # to pooled pixel-centre coordinates
+                xs, ys = (xs - (k - 1) / 2.0) / float(k), (ys - (k - 1) / 2.0) / float(k)
+            gx.copy_((xs + 0.5) / w * 2 - 1)
+            gy.copy_((ys + 0.5) / h * 2 - 1)
         else:  # offsets from the box centre, turned by the angle
             dx = (along - 0.5) * side_x
             dy = ((along - 0.5) * side_y).transpose(1, 2)
-            xs = (centre_x + c * dx) - s * dy
-            ys = (centre_y + s * dx) + c * dy
-        if k >= 2:  # to pooled pixel-centre coordinates
-            offset, step = (k - 1) / 2.0, float(k)
-            xs, ys = (xs - offset) / step, (ys - offset) / step
-        # grid_sample's align_corners=False coordinates: -1 and 1 are the image's outer edges
-        h, w = img.shape[1], img.shape[2]
-        gx, gy = torch.broadcast_tensors((xs + 0.5) / w * 2 - 1, (ys + 0.5) / h * 2 - 1)
-        grid = torch.stack([gx, gy], -1)
+            torch.sub(centre_x + c * dx, s * dy, out=gx)
+            torch.add(centre_y + s * dx, c * dy, out=gy)
+            if k >= 2:  # to pooled pixel-centre coordinates
+                grid.sub_((k - 1) / 2.0).div_(float(k))
+            # grid_sample's align_corners=False coordinates: -1 and 1 are the image's outer edges
+            grid.add_(0.5)
+            gx.div_(w)
+            gy.div_(h)
+            grid.mul_(2).sub_(1)
         sampled = F.grid_sample(img.permute(0, 3, 1, 2), grid, mode="bilinear", padding_mode="zeros",
                                 align_corners=False)
         crops.append(sampled.permute(0, 2, 3, 1))
