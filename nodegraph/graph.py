@@ -452,7 +452,7 @@ class Graph:
                 if in_port is None:
                     issues.append(GraphIssue(dst.node, dst.port, f"no input port '{dst.port}' on {dst_cls.type_name}; "
                                              f"inputs: {sorted(dst_cls.inputs)}"))
-            if dst in seen and not (in_port is not None and in_port.many):
+            if dst in seen and dst_cls is not None and not (in_port is not None and in_port.many):
                 issues.append(GraphIssue(dst.node, dst.port, f"input connected twice: from '{seen[dst]}' and '{src}'"))
             seen.setdefault(dst, src)
             if out_port is not None and in_port is not None:

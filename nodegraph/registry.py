@@ -36,6 +36,7 @@ ENTRY_POINT_GROUP = "nodegraph.nodes"
 _TYPES: dict[str, type["Node"]] = {}
 _PLUGINS_LOADED = False
 _LAZY_AREAS: dict[str, list[str]] = {}  # area name -> plugin packages that have such a submodule
+_PLUGIN_MODULES: list[str] = []  # the plugin modules load_plugins() imported
 
 
 def register(cls: type["Node"]) -> type["Node"]:
@@ -58,6 +59,7 @@ def load_plugins() -> None:
     modules = [ep.load() for ep in entry_points(group=ENTRY_POINT_GROUP)]
     for name in filter(None, (m.strip() for m in os.environ.get("NODEGRAPH_PLUGINS", "").split(","))):
         modules.append(import_module(name))
+    _PLUGIN_MODULES.extend(module.__name__ for module in modules)
     for module in modules:
         for area in getattr(module, "NODEGRAPH_AREAS", None) or []:
             _LAZY_AREAS.setdefault(area, []).append(module.__name__)
@@ -91,6 +93,10 @@ def get(name: str) -> type["Node"]:
     except KeyError:
         close = difflib.get_close_matches(name, list(_TYPES), n=3)
         hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+        if not _PLUGIN_MODULES:
+            hint += (f"; no node plugins are loaded (the '{ENTRY_POINT_GROUP}' entry-point group is empty and "
+                     "NODEGRAPH_PLUGINS is unset): install the package (`pip install -e .`) or run with "
+                     "NODEGRAPH_PLUGINS=nodes from a source checkout")
         raise KeyError(f"unknown node type '{name}'{hint}") from None
 
 

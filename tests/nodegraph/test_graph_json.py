@@ -134,3 +134,32 @@ def test_graph_parameters_apply_and_parse_strings():
     assert g.instantiate("scale").params.factor == 3.5
     with pytest.raises(GraphError, match="unknown graph parameter"):
         g.apply({"speed": 1})
+
+
+def test_unknown_type_is_the_only_issue_of_its_many_input():
+    """Two edges into one port of an unknown type: the unknown type is reported, not 'connected twice'
+    (whether the port takes many inputs cannot be known)."""
+    data = _json()
+    data["nodes"]["report"] = {"type": "test.NoSuchReport", "type_version": 1, "params": {}}
+    data["edges"] += [["ramp.values", "report.series"], ["scale.scaled", "report.series"]]
+    issues = _issues(data)
+    assert [(i.node, i.port) for i in issues] == [("report", "")]
+    assert "unknown node type 'test.NoSuchReport'" in issues[0].message
+
+
+def test_unknown_type_without_plugins_says_how_to_load_them(monkeypatch):
+    """Run from a source checkout without installing, no entry point lists the built-in nodes: the
+    error says so and how to fix it."""
+    from nodegraph import registry
+
+    monkeypatch.setattr(registry, "_PLUGINS_LOADED", False)
+    monkeypatch.setattr(registry, "_PLUGIN_MODULES", [])
+    monkeypatch.setattr(registry, "entry_points", lambda group: [])
+    monkeypatch.delenv("NODEGRAPH_PLUGINS", raising=False)
+    with pytest.raises(KeyError, match="NODEGRAPH_PLUGINS=nodes"):
+        registry.get("fit.NoSuchNode")
+    monkeypatch.setattr(registry, "_PLUGINS_LOADED", False)
+    monkeypatch.setenv("NODEGRAPH_PLUGINS", "nodes")
+    with pytest.raises(KeyError) as info:
+        registry.get("fit.NoSuchNode")
+    assert "NODEGRAPH_PLUGINS=nodes" not in str(info.value)
