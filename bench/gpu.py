@@ -16,7 +16,10 @@ Rows (ms per frame, median of `--repeat` runs after one warm-up, CUDA synchroniz
   face mesh (crop + net)       468 points on the detector's box; agreement: max point distance, px
   fit rigid + expression       fit.RigidPose + fit.Expression on `--frames` synthetic 256^2 plates
                                (mean identity, default appearance: the per-frame stages the
-                               graphs chunk); agreement: rotation (deg), translation (cm), weights
+                               graphs chunk); agreement: rotation (deg), translation (cm), weights;
+                               then each device's error against the plates' truth (median rotation,
+                               depth, jawOpen), so a difference can be judged: equal errors mean the
+                               two landed at different points of the same flat valley
 
 Tolerances (a row prints `ok` or `DIFFERS`): float32 kernels sum in another order on the GPU, so
 renders agree to ~1e-5 of their range and networks to ~1e-3 px (1e-4 image, 5e-3 px allowed
@@ -158,6 +161,16 @@ def bench_fit(device: str, frames: int) -> list[tuple[str, float, float, str]]:
              "translation cm": float(np.abs(a[:, 9:12] - b[:, 9:12]).max()),
              "weights": float(np.abs(a[:, 12:] - b[:, 12:]).max())}
     text = ", ".join(f"{k} {v:.3g} {_verdict(v, FIT_TOL[k])}" for k, v in diffs.items())
+    # Which device is closer to the truth? Equal errors mean a flat valley, not a wrong kernel.
+    jaw = model.expression_names.index("jawOpen")
+    for label, r in results.items():
+        err = np.einsum("fji,fjk->fik", truth["rotation"].astype(np.float64), r[:, :9].reshape(-1, 3, 3))
+        rot = np.degrees(np.linalg.norm(rotmat_to_axis_angle(err), axis=1))
+        depth = np.abs(r[:, 11] - truth["translation"][:, 2])
+        jaw_err = np.abs(r[:, 12 + jaw] - truth["weights"][:, jaw])
+        name = "cpu" if label == "cpu" else device
+        text += (f"; {name} vs truth: rotation median {np.median(rot):.2f} / max {rot.max():.2f} deg, depth "
+                 f"{np.median(depth):.2f} cm, jawOpen {np.median(jaw_err):.3f}")
     return [(f"fit rigid + expression ({frames} frames)", seconds["cpu"], seconds["other"], text)]
 
 
