@@ -25,7 +25,7 @@ from nodegraph import (SEQUENCE, Camera, FaceModel, ImageSequence, In, InputErro
 from .frame_selection import _near_neutral_frame, _painting_frames, _render_noise, painting_frame_count, view_spread_deg
 from .node_inputs import _MIN_PRESENCE, _appearance, _checked_plates, _fit_model, _linear_rgb, _views
 from .tuning import (IDENTITY_PRIOR, IDENTITY_PRIOR_ONE_VIEW, IDENTITY_ROUNDS, IDENTITY_SPREAD_DEG, LIGHT_FIRST_SPREAD,
-                     LIGHTING_FRAMES, PHOTOMETRIC_WEIGHT, RELATIVE_STEPS)
+                     LIGHTING_FRAMES, PHOTOMETRIC_WEIGHT, RELATIVE_STEPS, photometric_frame_weights)
 
 __all__ = ["DEFAULT_FOV_DEG", "PlateCamera", "EstimateAppearance", "EstimateIdentity"]
 
@@ -79,7 +79,7 @@ class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
     type_name = "fit.EstimateAppearance"
-    version = 6
+    version = 7  # 7: the photometric term's residual-scale weight (photometric.RESIDUAL_SCALE_REFERENCE)
     kind = SEQUENCE
     resources = {"gpu": 1}
     torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
@@ -231,7 +231,7 @@ class EstimateIdentity(Node):
     """The model's identity components: estimated from a few frames (with a prior), read from a file, or the mean."""
 
     type_name = "fit.EstimateIdentity"
-    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
+    version = 7  # 7: no photometric term on painted frames, residual-scale weight; 6: Levenberg-Marquardt, float64
     kind = SEQUENCE
     resources = {"gpu": 1}
     torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
@@ -299,6 +299,8 @@ class EstimateIdentity(Node):
         elif p.mode == "file":
             ident = self._read(count)
         else:
+            import torch
+
             from ..landmarks.correspondence import MESH_EXTRA_POINTS
             from ..landmarks.network import load_face_mesh
             from .identity import solve_identity
@@ -312,6 +314,9 @@ class EstimateIdentity(Node):
             fm = _fit_model(model, appearance, self.device)
             plates = _checked_plates(images, cameras, views.seen.shape[0]) if images else None
             photo = bool(plates) and appearance is not None and p.photometric_weight > 0
+            # frames whose plate the albedo was painted from count no photometric term (see the function)
+            frame_weight = photometric_frame_weights(appearance, self.frames.start + pick) if photo else None
+            photo = photo and bool(frame_weight.any())
             sub = _views(landmarks, boxes, cameras, self.device, select=pick, allow_mesh=True,
                          plates=plates if photo else None)
             mesh = sub.target.shape[2] > 68
@@ -325,7 +330,9 @@ class EstimateIdentity(Node):
                                       iterations=p.iterations, outer=p.rounds,
                                       extra_points=MESH_EXTRA_POINTS if mesh else None,
                                       extra_weight=p.mesh_weight,
-                                      photometric_weight=p.photometric_weight if photo else 0.0)
+                                      photometric_weight=p.photometric_weight if photo else 0.0,
+                                      photometric={"frame_weight": torch.as_tensor(frame_weight)}
+                                      if photo and not frame_weight.all() else None)
         fitted = FaceModel(neutral=model.evaluate(np.zeros(len(model.expression_names)), ident),
                            faces=model.faces, expression_deltas=model.expression_deltas,
                            expression_names=list(model.expression_names), identity_deltas=model.identity_deltas,

@@ -23,7 +23,7 @@ from nodegraph import (FRAMEWISE, Camera, FaceModel, ImageSequence, In, InputErr
 from nodegraph.flags import flags_to_mask
 
 from .node_inputs import POSE_NAMES, _checked_plates, _fit_model, _pose_values, _state_from, _views
-from .tuning import PHOTOMETRIC_WEIGHT, photometric_weight_for
+from .tuning import PHOTOMETRIC_WEIGHT, photometric_frame_weights, photometric_weight_for
 
 __all__ = ["RigidPose", "Expression"]
 
@@ -82,9 +82,14 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
         found &= np.isfinite(start).all(1)
     network = load_face_mesh(dev)
     idx = np.flatnonzero(found)
-    for n0 in range(0, len(idx), p.batch):
-        sel = idx[n0:n0 + p.batch]
-        sub = _views(landmarks, boxes, cameras, dev, select=sel, plates=plates if photo else None,
+    # frames whose plate the albedo was painted from are fitted without the photometric term
+    # (tuning.photometric_frame_weights), in batches of their own
+    on = photometric_frame_weights(appearance, node.frames.start + idx) > 0 if photo else np.zeros(len(idx), bool)
+    batches = [(group[n0:n0 + p.batch], with_photo) for group, with_photo in ((idx[on], True), (idx[~on], False))
+               for n0 in range(0, len(group), p.batch)]
+    done = 0
+    for sel, with_photo in batches:
+        sub = _views(landmarks, boxes, cameras, dev, select=sel, plates=plates if with_photo else None,
                      iris=iris if eyes is not None else None)
         if start is None:
             state = initial_pose(fm, sub)
@@ -101,8 +106,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
                                  first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
                                  edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
                                  supersample=p.supersample,
-                                 photometric_weight=photometric_weight_for(p.photometric_weight, appearance) if photo
-                                 else 0.0)
+                                 photometric_weight=photometric_weight_for(p.photometric_weight, appearance)
+                                 if with_photo else 0.0)
         if p.backprop_steps:
             state, e = refine_backprop(fm, sub, state, stages[-1], network, steps=p.backprop_steps,
                                        prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
@@ -110,7 +115,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
         pose[sel] = _pose_values(state)
         weights[sel] = state.weights.cpu().numpy()
         energy[sel] = e.cpu().numpy()
-        node.progress(min(n0 + p.batch, len(idx)) / max(len(idx), 1), f"{stages_kind}: {n0 + len(sel)} frames")
+        done += len(sel)
+        node.progress(done / max(len(idx), 1), f"{stages_kind}: {done} frames")
     return {"pose": pose, "weights": weights, "energy": energy, "failed": ~found}
 
 
@@ -118,7 +124,7 @@ class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 6  # 6: Levenberg-Marquardt on geometry.lm, solved in float64
+    version = 7  # 7: no photometric term on painted frames, residual-scale weight; 6: Levenberg-Marquardt, float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
@@ -166,7 +172,7 @@ class Expression(Node):
     the eyeLook weights from the plate's iris centres when `iris` is connected."""
 
     type_name = "fit.Expression"
-    version = 8  # 8: outer rounds keep each frame's best state read (fit.solve.fit_stages); 7: eyeLook
+    version = 9  # 9: no photometric term on painted frames, residual-scale weight; 8: outer rounds keep each frame's best state read (fit.solve.fit_stages); 7: eyeLook
     # weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}

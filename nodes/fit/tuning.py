@@ -21,9 +21,14 @@ Measurements behind `fit.EstimateAppearance`'s parameters (bench/fit.py, synthet
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
+
 from nodegraph import JsonValue
 
-__all__ = ["PHOTOMETRIC_WEIGHT", "PHOTOMETRIC_REFERENCE_NOISE", "photometric_weight_for", "LIGHTING_FRAMES",
+__all__ = ["PHOTOMETRIC_WEIGHT", "PHOTOMETRIC_REFERENCE_NOISE", "photometric_weight_for", "photometric_frame_weights",
+           "LIGHTING_FRAMES",
            "LIGHT_FIRST_SPREAD", "RELATIVE_STEPS", "IDENTITY_ROUNDS", "IDENTITY_PRIOR", "IDENTITY_PRIOR_ONE_VIEW",
            "IDENTITY_SPREAD_DEG"]
 
@@ -46,6 +51,26 @@ def photometric_weight_for(weight: float, appearance: JsonValue | None) -> float
     """
     noise = (appearance.value.get("plate_noise") if appearance is not None else None) or 0.0
     return float(weight) * max(1.0, float(noise) / PHOTOMETRIC_REFERENCE_NOISE)
+
+
+def photometric_frame_weights(appearance: JsonValue | None, frames: Sequence[int]) -> np.ndarray:
+    """(F,) factor of the photometric term for each of `frames` (absolute frame numbers): 0 for a
+    frame whose plate the appearance's albedo was painted from ('albedo_source' 'painted', its
+    'frames'), else 1.
+
+    A painted albedo is that plate divided by the shading, so at the painting pose the render
+    reproduces the plate: the term there carries no evidence of its own and only pulls the fit
+    back to the first pass's pose and shape, through the photo's fine texture (hair, pores, JPEG
+    blocks), whose gradients turn a 1e-4 px change of the landmarks into a different minimum.
+    skimage's astronaut (one photo), 1-LSB noise on 0.1% of the pixels, 4 runs: with the term the
+    rotation spread 8.4 deg, the weights 0.69, the depth 3.7 cm; without it 0.28 deg, 0.036 and
+    0.15 cm. On four one-photo synthetic plates with truth the mean rotation error was the same
+    (3.47 deg) with and without it. Frames not painted (a video's other frames) keep the term:
+    there the painting is evidence of the skin's colour seen elsewhere.
+    """
+    value = appearance.value if appearance is not None else {}
+    painted = set(value.get("frames") or []) if value.get("albedo_source") == "painted" else set()
+    return np.array([0.0 if int(f) in painted else 1.0 for f in frames], np.float64)
 
 
 LIGHTING_FRAMES = 4
