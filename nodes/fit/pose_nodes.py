@@ -23,6 +23,7 @@ from nodegraph import (FRAMEWISE, Camera, FaceModel, ImageSequence, In, InputErr
 from nodegraph.flags import flags_to_mask
 
 from .node_inputs import POSE_NAMES, _checked_plates, _fit_model, _pose_values, _state_from, _views
+from .output_nodes import MAX_ENERGY_RMS, MAX_REPROJECTION, energy_rms, projected_landmarks68, reprojection_error
 from .tuning import PHOTOMETRIC_WEIGHT, photometric_frame_weights, photometric_weight_for
 
 __all__ = ["RigidPose", "Expression"]
@@ -57,7 +58,8 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     import torch
 
     from ..landmarks.network import load_face_mesh
-    from .solve import RIGID_STAGES, expression_stages, eye_stage, fit_stages, initial_pose, refine_backprop
+    from .solve import (RETRY_YAWS, RIGID_STAGES, expression_stages, eye_stage, fit_stages, initial_pose,
+                        refine_backprop, retry_from_starts)
 
     p = node.params
     torch.manual_seed(node.seed)
@@ -78,6 +80,7 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
     pose = np.full((frames, 12), np.nan, np.float32)
     weights = np.full((frames, k), np.nan, np.float32)
     energy = np.full(frames, np.nan, np.float32)
+    retried = np.full(frames, -1, np.int64)  # -1: not re-solved; else the start kept (retry_from_starts)
     if start is not None:
         found &= np.isfinite(start).all(1)
     network = load_face_mesh(dev)
@@ -102,33 +105,74 @@ def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: 
                 stages = stages + (eyes,)
             if getattr(p, "hold_pose", False):
                 stages = tuple(dataclasses.replace(stage, rotation=False, translation=False) for stage in stages)
-        state, e, _ = fit_stages(fm, sub, state, stages, network, outer=p.rounds,
-                                 first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
-                                 edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight, iterations=p.iterations,
-                                 supersample=p.supersample,
-                                 photometric_weight=photometric_weight_for(p.photometric_weight, appearance)
-                                 if with_photo else 0.0)
-        if p.backprop_steps:
-            state, e = refine_backprop(fm, sub, state, stages[-1], network, steps=p.backprop_steps,
-                                       prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
-                                       eyelid_weight=p.eyelid_weight, supersample=p.supersample)
+
+        def solve(views: Any, state: Any, stages: tuple = stages, first_on_landmarks: bool = first_on_landmarks,
+                  with_photo: bool = with_photo) -> tuple[Any, Any]:
+            state, e, _ = fit_stages(fm, views, state, stages, network, outer=p.rounds,
+                                     first_outer_on_landmarks=first_on_landmarks, prior=getattr(p, "prior", 100.0),
+                                     edge_weight=p.edge_weight, eyelid_weight=p.eyelid_weight,
+                                     iterations=p.iterations, supersample=p.supersample,
+                                     photometric_weight=photometric_weight_for(p.photometric_weight, appearance)
+                                     if with_photo else 0.0)
+            if p.backprop_steps:
+                state, e = refine_backprop(fm, views, state, stages[-1], network, steps=p.backprop_steps,
+                                           prior=getattr(p, "prior", 100.0), edge_weight=p.edge_weight,
+                                           eyelid_weight=p.eyelid_weight, supersample=p.supersample)
+            return state, e
+
+        state, e = solve(sub, state)
+        if getattr(p, "retry", False) and start is None:
+            wrong = _landed_wrong(_pose_values(state), state.weights.cpu().numpy(), e.cpu().numpy(), model,
+                                  cameras, landmarks, boxes, sel)
+            state, e, chosen = retry_from_starts(fm, sub, state, e, torch.as_tensor(wrong, device=e.device), solve,
+                                                 RETRY_YAWS[1:])  # the first solve started from RETRY_YAWS[0]
+            retried[sel] = np.where(wrong, chosen.cpu().numpy(), -1)
         pose[sel] = _pose_values(state)
         weights[sel] = state.weights.cpu().numpy()
         energy[sel] = e.cpu().numpy()
         done += len(sel)
-        node.progress(done / max(len(idx), 1), f"{stages_kind}: {done} frames")
-    return {"pose": pose, "weights": weights, "energy": energy, "failed": ~found}
+        node.progress(done / max(len(idx), 1), f"{stages_kind}: {done} frames"
+                      + (f", {int((retried >= 0).sum())} re-solved from other starts" if (retried >= 0).any() else ""))
+    return {"pose": pose, "weights": weights, "energy": energy, "failed": ~found, "retried": retried}
+
+
+def _landed_wrong(pose: np.ndarray, weights: np.ndarray, energy: np.ndarray, model: FaceModel,
+                  cameras: list[Camera], landmarks: list[Landmarks2D], boxes: list[ParamSequence],
+                  sel: np.ndarray) -> np.ndarray:
+    """(N,) bool: the frames `sel` whose fit fit.FlagFailures' absolute checks would flag.
+
+    The first camera's check, as fit.FlagFailures makes it (`reprojection_error`, `energy_rms`):
+    the fitted 68 landmark vertices projected more than `MAX_REPROJECTION` eye distances RMS
+    from the plate's, or (one camera) the energy above `MAX_ENERGY_RMS` eye distances RMS per
+    landmark. `pose` (N, 12), `weights` (N, K), `energy` (N,) 256-crop pixel^2 of the frames `sel`.
+    """
+    projection = projected_landmarks68(np.concatenate([pose, weights], 1), model, cameras[0])
+    off = reprojection_error(projection, landmarks[0].points[sel]) > MAX_REPROJECTION  # NaN: not checked
+    if len(cameras) == 1:
+        off |= energy_rms(energy, boxes[0].values[sel], projection.eye_px) > MAX_ENERGY_RMS
+    return off
+
+
+class _RigidParams(_FitParams):
+    retry: bool = Param(True, description="Re-solve a frame that landed in a wrong minimum from other starts: "
+                        "a frame whose fitted 68 landmarks project more than MAX_REPROJECTION (0.25) eye "
+                        "distances RMS from the plate's, or (one camera) whose energy exceeds MAX_ENERGY_RMS "
+                        "(0.15) eye distances RMS per landmark (fit.FlagFailures' absolute checks, first "
+                        "camera), is solved again from the head turned away and turned 35 deg each way "
+                        "(nodes.fit.solve.RETRY_YAWS, each at the depth of the plate's eye distance), keeping "
+                        "the lowest final energy; `retried` says which. Other frames: no extra work.")
 
 
 class RigidPose(Node):
     """Rigid head pose per frame: translation on non-jaw landmarks, then rotation + translation on non-jaw, jaw, all."""
 
     type_name = "fit.RigidPose"
-    version = 7  # 7: no photometric term on painted frames, residual-scale weight; 6: Levenberg-Marquardt, float64
+    version = 8  # 8: a frame the absolute checks flag is solved again from other starts (`retry`, `retried`);
+    # 7: no photometric term on painted frames, residual-scale weight; 6: Levenberg-Marquardt, float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
     torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
-    Params = _FitParams
+    Params = _RigidParams
 
     landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
     boxes = In(ParamSequence, many=True, doc="Crop boxes x0 y0 x1 y1, one per camera.")
@@ -140,14 +184,20 @@ class RigidPose(Node):
     pose = Out(ParamSequence, doc="r00..r22 (model to world), tx ty tz cm; NaN where failed.")
     energy = Out(ParamSequence, doc="energy: final deep energy, 256-crop pixel^2.")
     failed = Out(ParamSequence, doc="failed: 1 where no camera found the face.")
+    retried = Out(ParamSequence, doc="retried: 1 where the first solve landed in a wrong minimum and the frame "
+                  "was solved again from other starts (`retry`); start: the start kept, 0 the first solve's, "
+                  "i the i-th of nodes.fit.solve.RETRY_YAWS[1:] (turned away, +35 deg, -35 deg); -1 not retried.")
 
     def run(self, landmarks: list[Landmarks2D], boxes: list[ParamSequence], cameras: list[Camera],
             model: FaceModel, appearance: JsonValue | None = None,
             images: list[ImageSequence] | None = None) -> dict[str, ParamSequence]:
         out = _run_fit(self, "rigid", landmarks, boxes, cameras, model, appearance, None, images)
+        retried = out["retried"]
         return {"pose": ParamSequence(out["pose"], list(POSE_NAMES)),
                 "energy": ParamSequence(out["energy"][:, None], ["energy"]),
-                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
+                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"]),
+                "retried": ParamSequence(np.stack([retried >= 0, retried], 1).astype(np.float32),
+                                         ["retried", "start"])}
 
 
 class _ExpressionParams(_FitParams):

@@ -51,7 +51,8 @@ from .views import (Anchors, FitModel, FitViews, anchors_from_render, at_anchors
                     render_crops)
 
 __all__ = ["Stage", "PoseState", "RIGID_STAGES", "expression_stages", "eye_stage", "jaw_shapes", "mouth_shapes",
-           "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop"]
+           "initial_pose", "predicted_points", "solve_stage", "fit_stages", "refine_backprop", "RETRY_YAWS",
+           "frames_of", "retry_from_starts"]
 
 BOUND_PENALTY = 1e4
 """Weight of the quadratic penalty that keeps expression weights in [0, 1]."""
@@ -217,12 +218,15 @@ class PoseState(NamedTuple):
     weights: Tensor
 
 
-def initial_pose(model: FitModel, views: FitViews) -> PoseState:
+def initial_pose(model: FitModel, views: FitViews, yaw: float = 0.0) -> PoseState:
     """The head facing the first camera that saw it, upright, at the depth of the eye distance.
 
     Rotation: the model's frame (y up, z out of the face) turned to face the camera
     (`R = R_cam^T diag(1, -1, -1)`); depth `z = f * IOD_model / IOD_plate` from the outer
     eye corners (36, 45); x, y by back-projecting the centroid of the non-jaw landmarks.
+    With `yaw` (radians, not 0): that head turned by `yaw` about its own vertical axis
+    (`R R_y(yaw)`), at the depth where a head so turned shows the plate's eye distance
+    (`z |cos yaw|`, the eye corners' span foreshortened); `retry_from_starts`' other starts.
     """
     b, c = views.seen.shape
     dev, dt = model.neutral.device, model.neutral.dtype
@@ -231,11 +235,16 @@ def initial_pose(model: FitModel, views: FitViews) -> PoseState:
     k = views.intrinsics[first]
     flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dt, device=dev))
     rot = e[:, :3, :3].transpose(1, 2) @ flip
+    if yaw:
+        cy, sy = float(np.cos(yaw)), float(np.sin(yaw))
+        rot = rot @ torch.tensor([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]], dtype=dt, device=dev)
     target = views.target[torch.arange(b), first]  # (B, 68, 2)
     lm = model.neutral[torch.as_tensor(model.landmarks, device=dev)]
     iod_model = (lm[36] - lm[45]).norm()
     iod_px = (target[:, 36] - target[:, 45]).norm(dim=-1).clamp_min(1.0)
     z = k[:, 0] * iod_model / iod_px
+    if yaw:
+        z = z * abs(float(np.cos(yaw)))
     centre_px = target[:, 17:].mean(1)
     x = (centre_px[:, 0] - k[:, 2]) / k[:, 0] * z
     y = (centre_px[:, 1] - k[:, 3]) / k[:, 1] * z
@@ -243,6 +252,61 @@ def initial_pose(model: FitModel, views: FitViews) -> PoseState:
     world_point = ((cam_point - e[:, :3, 3])[:, None] @ e[:, :3, :3])[:, 0]  # R^T (p - t)
     trans = world_point - (lm[17:].mean(0) @ rot.transpose(1, 2))
     return PoseState(rot, trans, torch.zeros(b, model.deltas.shape[0], dtype=dt, device=dev))
+
+
+RETRY_YAWS = (0.0, float(np.pi), float(np.radians(35.0)), -float(np.radians(35.0)))
+"""`retry_from_starts`' starts, yaw about the head's vertical axis (radians) from facing the camera:
+facing it (`initial_pose`), turned away, and turned 35 deg each way (each at the depth of the
+plate's eye distance foreshortened by that turn)."""
+
+
+def frames_of(views: FitViews, frames: Tensor) -> FitViews:
+    """The views of some frames: `frames` (N,) int64 indices into the batch."""
+    pick = lambda a: None if a is None else a[frames]  # noqa: E731
+    return dataclasses.replace(views, target=views.target[frames], boxes=views.boxes[frames],
+                               seen=views.seen[frames], plates=pick(views.plates), iris=pick(views.iris))
+
+
+def retry_from_starts(model: FitModel, views: FitViews, state: PoseState, energy: Tensor, wrong: Tensor,
+                      solve: Callable[[FitViews, PoseState], tuple[PoseState, Tensor]],
+                      yaws: tuple[float, ...] = RETRY_YAWS) -> tuple[PoseState, Tensor, Tensor]:
+    """Re-solve the frames whose fit landed in a wrong minimum from other starts; keep the lowest energy.
+
+    The frames in `wrong` are solved again by `solve` from `initial_pose(model, views, yaw)` for
+    each of `yaws`; each frame keeps, of its first solve (`state`, `energy`) and these, the
+    one with the lowest final energy. Frames not in `wrong` are not touched (the same tensors'
+    values, bit for bit), and nothing runs when no frame is.
+
+    Args:
+        model, views: the model and the batch's views (B frames).
+        state, energy: the first solve's result, (B,) final energies (256-crop pixel^2).
+        wrong: (B,) bool, the frames to re-solve (e.g. landmarks reprojected more than
+            `nodes.fit.output_nodes.MAX_REPROJECTION` eye distances from the plate's).
+        solve: (views of N frames, start) -> (state, (N,) final energy), the solve that gave `state`.
+        yaws: the starts' turns about the head's vertical axis, radians (`RETRY_YAWS`).
+    Returns:
+        the state, (B,) its energy, and (B,) int64: 0 where the first solve was kept, i where the
+        start `yaws[i - 1]` won.
+    """
+    chosen = torch.zeros(len(energy), dtype=torch.int64, device=energy.device)
+    if not bool(wrong.any()):
+        return state, energy, chosen
+    idx = torch.nonzero(wrong)[:, 0]
+    sub = frames_of(views, idx)
+    best = PoseState(state.rot[idx], state.trans[idx], state.weights[idx])
+    best_e, best_i = energy[idx], chosen[idx]
+    for i, yaw in enumerate(yaws, 1):
+        found, e = solve(sub, initial_pose(model, sub, yaw))
+        found = PoseState(*(a.to(b.dtype) for a, b in zip(found, best)))
+        take = e.to(best_e.dtype) < best_e  # a NaN energy never wins
+        best, best_e = _mix(take, found, best), torch.where(take, e.to(best_e.dtype), best_e)
+        best_i = torch.where(take, torch.full_like(best_i, i), best_i)
+    rot, trans, weights = state.rot.clone(), state.trans.clone(), state.weights.clone()
+    rot[idx], trans[idx], weights[idx] = best.rot, best.trans, best.weights
+    energy = energy.clone()
+    energy[idx] = best_e
+    chosen[idx] = best_i
+    return PoseState(rot, trans, weights), energy, chosen
 
 
 def _anchored(model: FitModel, anchors: Anchors) -> tuple[Tensor, Tensor]:
@@ -640,6 +704,7 @@ def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple
                             "step": step.tolist()})
             if best_objective is not None and moved:
                 worse = objective > best_objective
+                step = torch.where(worse, step, (step / OUTER_STEP_CUT).clamp(max=1.0))  # a success grows it back
                 if bool(worse.any()):  # those frames go back to their best state, with half the step
                     step = torch.where(worse, step * OUTER_STEP_CUT, step)
                     state = _mix(worse, best, state)
