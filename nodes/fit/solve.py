@@ -704,7 +704,6 @@ def fit_stages(model: FitModel, views: FitViews, state: PoseState, stages: tuple
                             "step": step.tolist()})
             if best_objective is not None and moved:
                 worse = objective > best_objective
-                step = torch.where(worse, step, (step / OUTER_STEP_CUT).clamp(max=1.0))  # a success grows it back
                 if bool(worse.any()):  # those frames go back to their best state, with half the step
                     step = torch.where(worse, step * OUTER_STEP_CUT, step)
                     state = _mix(worse, best, state)
