@@ -44,6 +44,29 @@ pyramid level: one call costs about three short-range whole-frame calls and it f
 a box of about 100 px in 1080p. A contrast stretch, tried too, read wrong faces 2.7 to 4.6 eye distances away on dark and small blurred frames and is not used. No
 face was read on 18 face-free skimage photos, plain, dark, blurred or noisy (0 of 72 frames).
 
+Why the acceptance check's 30 failed frames fail (issue 26, measured at TrackFaces 7) and the
+second looks tried there and not used. The face mesh's presence, not the detector, is what fails
+first: read in the crop of the reference points themselves, the astronaut darkened (x0.25) and JPEG
+6 gives presence 0.00 (the read itself 11% off), the 20 px astronaut blurred 0.00 (10%), the
+combined case (25 px, roll 90, dark, a second copy) with JPEG 6 0.27 and with noise 0.20,
+grace_hopper's combined case with JPEG 6 0.01. Denoising the frame (Gaussian 1 or 2 px, median 3 x
+3), a contrast stretch of the crop (1st-99th luma percentile) and both leave that presence at most
+0.20 on the astronaut's dark and grace_hopper's combined JPEG 6 frames; they raise the astronaut's
+combined case with JPEG 6 to 0.83 (Gaussian 1 px; 0.18 at 2 px) and with noise to 0.91-0.99, but on
+those two the detections' boxes, plain or denoised, at the detector's roll plus 0, 90, 180 or 270
+deg, give reads 88-810% off, and a denoised full-range look read the dark background 7.6 eye
+distances from both faces at presence 0.71 with its re-read agreeing (0.09): a confident wrong
+face. The 20 px astronaut blurred reads at presence 0.75 sharpened in the reference's crop (7%
+off), under the sharpened looks' 0.9. The camera man (25 failed: JPEG 6 in all 10 cases, blurred in
+8, noisy in 6, the dark case darkened again) is a near profile at a 23 px eye distance: on his
+upright and roll-30 blurred frames the detections' boxes are off his face and the reads in them
+26-338% from his hand annotation; with the frame's crop contrast-stretched and sharpened the full-
+range box reads at presence 0.95, 22% off. Agreement between framings shifted 0.1 of the crop side
+and scaled 1.25 / 1.8 (the largest `read_disagreement` from their mean) does not separate faces
+from texture: 0.15-0.35 for the reads within 20% on these frames, 0.17 and up on the face-free
+frames' detections. So these frames stay failed with a reason (`bench/detect_faces.py --only-
+check`).
+
 Frames are (F, H, W, 3) float32 RGB in [0, 1], sRGB-encoded; pixels as in
 `nodes.landmarks.network`. This module imports torch at the top: import it from node `run()`
 methods only.
