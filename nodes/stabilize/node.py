@@ -39,7 +39,8 @@ class ModePursuitParams(NodeParams):
                                                         "per-frame robust alignment to the rest "
                                                         "(0 = none).")
     still_refinement: bool = Param(True, description="Adaptive: last, re-align every frame on the "
-                                   "vertices still up to the noise over the whole shot. Frame by frame, "
+                                   "vertices still up to the noise over the whole shot and around that frame (up to 31 "
+                                   "frames averaged; 3 rounds). Frame by frame, "
                                    "expression motion under the final width (5 noise std: 0.5 cm at "
                                    "0.1 cm noise) looks like rest and biases the pose; over a few "
                                    "frames it does not. On by default: it removes that bias and "
@@ -103,7 +104,7 @@ class ModePursuit(Node):
     """
 
     type_name = "stabilize.ModePursuit"
-    version = 3
+    version = 4
     kind = SEQUENCE
     # Imported in the runner's preload thread while the capture is read: torch, the solver, and
     # the numba kernels of robust_kernels.py loaded from numba's cache (preload_kernels.py).

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .robust_kernels import MOMENTS, gather_normalized, irls_moments, window_mean_square
+from .robust_kernels import MOMENTS, gather_normalized, irls_moments, local_window_still, window_mean_square
 
 __all__ = ["load_kernels"]
 
@@ -25,9 +25,10 @@ def load_kernels() -> None:
     points = np.zeros((frames, 3, vertices), np.float32)
     rest = np.zeros((3, vertices), np.float32)
     rotation = np.broadcast_to(np.eye(3), (frames, 3, 3)).copy()
-    irls_moments(points, rest, rotation, np.zeros((frames, 3)), 1.0, np.ones(vertices, np.float32), 1,
+    irls_moments(points, rest, rotation, np.zeros((frames, 3)), 1.0, np.ones((1, vertices), np.float32), 1,
                  np.empty((frames, MOMENTS)), np.empty((0, vertices), np.float32))
     window_mean_square(points, rest, 1, np.empty(vertices))
+    local_window_still(points, 1, 1.0, np.empty((frames, vertices), np.float32))
     gather_normalized(np.zeros((frames, vertices, 3), np.float32), np.arange(vertices, dtype=np.int64),
                       np.zeros(3), 1.0, np.empty((frames, 3, vertices), np.float32))
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["MOMENTS", "irls_moments", "window_mean_square", "gather_normalized"]
+__all__ = ["MOMENTS", "irls_moments", "window_mean_square", "local_window_still", "gather_normalized"]
 
 MOMENTS = 16
 """Per-frame moments: [sum w, sum w x (3), sum w r (3), sum w x r^T (9, row-major)]."""
@@ -40,7 +40,8 @@ def irls_moments(x: np.ndarray, rest: np.ndarray, rot: np.ndarray, trans: np.nda
     Args:
         x: (F, 3, V) float32 points. rest: (3, V) float32 target points.
         rot: (F, 3, 3) float64, trans: (F, 3) float64 current transforms.
-        width: w > 0, units of x. prior: (V,) float32 vertex weights c_v.
+        width: w > 0, units of x. prior: (1, V) float32 vertex weights c_v shared by every
+            frame, or (F, V) per frame (`c_fv`, e.g. 0 where a vertex moves in that frame).
         rank: 1-based rank of the quartile (V // 4, at least 1).
         moments: (F, 16) float64 output, see `MOMENTS`.
         weights: (F, V) float32 output of the weights (before the uniform fallback), or a
@@ -56,6 +57,7 @@ def irls_moments(x: np.ndarray, rest: np.ndarray, rot: np.ndarray, trans: np.nda
         t0, t1, t2 = trans[f, 0], trans[f, 1], trans[f, 2]
         xa, xb, xc = x[f, 0], x[f, 1], x[f, 2]
         ra, rb, rc = rest[0], rest[1], rest[2]
+        cv = prior[f] if prior.shape[0] == num_frames else prior[0]
         dist = np.empty(num_vertices, np.float64)
         near = 0
         for v in range(num_vertices):
@@ -79,7 +81,7 @@ def irls_moments(x: np.ndarray, rest: np.ndarray, rot: np.ndarray, trans: np.nda
                     w = 1.0
                 else:
                     u = dist[v] * inv_width
-                    w = (1.0 if u < 0.5 else max(1.0 - u, 0.0) / u) * prior[v]
+                    w = (1.0 if u < 0.5 else max(1.0 - u, 0.0) / u) * cv[v]
                     if write:
                         weights[f, v] = w
                     if w == 0.0:
@@ -146,6 +148,47 @@ def window_mean_square(stab: np.ndarray, centre: np.ndarray, window: int, out: n
                     total[i] += (run[0, i] * run[0, i] + run[1, i] * run[1, i] + run[2, i] * run[2, i])
         for i in range(n):
             out[lo + i] = total[i] / (window * window) / count
+
+
+@numba.njit(cache=True, nogil=True)
+def local_window_still(residual: np.ndarray, half_window: int, threshold: float, out: np.ndarray) -> None:
+    """Which vertices are at their rest around each frame (see `robust.locally_still`).
+
+    For each frame f and vertex v: the mean `m_fv` of the residual over the frames
+    `max(0, f - h) .. min(F - 1, f + h)` (n_f of them, h = `half_window`), and
+    `out_fv = 1` when `n_f |m_fv|^2 < threshold`, else 0; running sums in float64.
+
+    Args:
+        residual: (F, 3, V) float32 stabilized points minus their rest.
+        half_window: h >= 0 (frames). threshold: in squared units of the residual.
+        out: (F, V) float32 output.
+    """
+    num_frames = residual.shape[0]
+    num_vertices = residual.shape[2]
+    block = 256
+    for start in range((num_vertices + block - 1) // block):
+        lo = start * block
+        hi = min(num_vertices, lo + block)
+        n = hi - lo
+        run = np.zeros((3, n), np.float64)
+        for f in range(min(half_window, num_frames)):      # frames 0 .. h - 1 enter first
+            for c in range(3):
+                for i in range(n):
+                    run[c, i] += residual[f, c, lo + i]
+        for f in range(num_frames):
+            enter, leave = f + half_window, f - half_window - 1
+            if enter < num_frames:
+                for c in range(3):
+                    for i in range(n):
+                        run[c, i] += residual[enter, c, lo + i]
+            if leave >= 0:
+                for c in range(3):
+                    for i in range(n):
+                        run[c, i] -= residual[leave, c, lo + i]
+            count = min(num_frames - 1, f + half_window) - max(0, f - half_window) + 1
+            for i in range(n):
+                square = run[0, i] * run[0, i] + run[1, i] * run[1, i] + run[2, i] * run[2, i]
+                out[f, lo + i] = 1.0 if square < threshold * count else 0.0
 
 
 @numba.njit(cache=True, nogil=True)

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 import nodes.stabilize.preload_kernels
 from nodes.stabilize import robust_kernels as k
 
-names = ("irls_moments", "window_mean_square", "gather_normalized")
+names = ("irls_moments", "window_mean_square", "local_window_still", "gather_normalized")
 before = {n: len(getattr(k, n).signatures) for n in names}
 
 from nodegraph import MeshSequence, run_node
@@ -48,5 +48,6 @@ def test_preloaded_kernels_are_the_ones_a_run_calls():
     proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     counts = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert counts["before"] == {"irls_moments": 1, "window_mean_square": 1, "gather_normalized": 1}
+    assert counts["before"] == {"irls_moments": 1, "window_mean_square": 1, "local_window_still": 1,
+                                "gather_normalized": 1}
     assert counts["after"] == counts["before"]

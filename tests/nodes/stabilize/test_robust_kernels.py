@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from nodes.stabilize.robust import robust_align, still_vertices
+from nodes.stabilize.robust import locally_still, robust_align, still_vertices
 
 
 def _rotations(count: int, max_angle: float, generator: torch.Generator) -> torch.Tensor:
@@ -121,3 +121,47 @@ def test_still_refinement_gather_matches_torch():
     gather_normalized(verts, ids, centre, 4.0, out)
     expected = ((verts[:, ids].astype(np.float64) - centre) / 4.0).astype(np.float32).transpose(0, 2, 1)
     np.testing.assert_array_equal(out, expected)
+
+
+def test_robust_align_per_frame_weights_kernel_matches_torch():
+    """(F, V) weights: a vertex region that moves only in some frames, weighted 0 there."""
+    x, rest, rot_true, trans_true = _scene(seed=4, moving=0.0)
+    f, _, v = x.shape
+    # vertices 0..299 move by 0.2 in frames 20..39 only (in the skull frame, then to the world)
+    offset = torch.zeros(f, 3, v, dtype=torch.float64)
+    offset[20:40, 1, :300] = 0.2
+    x = (x.double() + rot_true.transpose(1, 2) @ offset).float().contiguous()
+    weights = torch.ones(f, v)
+    weights[20:40, :300] = 0.0
+    rot0, trans0 = torch.eye(3, dtype=torch.float64).expand(f, 3, 3), torch.zeros(f, 3, dtype=torch.float64)
+    fused = robust_align(x, rest, rot0, trans0, 1.0, iterations=4, vertex_weights=weights, kernels=True)
+    ops = robust_align(x, rest, rot0, trans0, 1.0, iterations=4, vertex_weights=weights, kernels=False)
+    assert float((fused.rot - ops.rot).abs().max()) < 1e-5
+    assert float((fused.trans - ops.trans).abs().max()) < 1e-5
+    assert float(fused.weights[20:40, :300].abs().max()) == 0.0
+    # the noise is 0.003 on 600 vertices: the rotation within a few 1e-4; with the moving
+    # vertices kept (width 1.0 > 0.2, uniform weights) a third of the points sit 0.2 off
+    assert float((fused.rot - rot_true).abs().max()) < 2e-3
+    kept = robust_align(x, rest, rot0, trans0, 1.0, iterations=4, kernels=True)
+    assert float((kept.trans[20:40] - trans_true[20:40]).abs().max()) > 0.03
+    assert float((fused.trans[20:40] - trans_true[20:40]).abs().max()) < 0.01
+
+
+def test_locally_still_kernel_matches_cumulative_sum_and_finds_a_held_offset():
+    g = torch.Generator().manual_seed(6)
+    frames, vertices, sigma = 200, 500, 0.01
+    residual = sigma * torch.randn(frames, 3, vertices, generator=g)
+    residual[80:120, 2, :100] += 0.01               # one noise std, held over 40 frames
+    for half_window in (0, 3, 15, frames):
+        fused = locally_still(residual, sigma, half_window=half_window, kernels=True)
+        ops = locally_still(residual, sigma, half_window=half_window, kernels=False)
+        # the same float64 sums in another order: a tie at the threshold is the only difference
+        assert float((fused != ops).float().mean()) < 1e-4, half_window
+    still = locally_still(residual, sigma, half_window=15)
+    # 31 frames of the held offset: n |m|^2 / sigma^2 ~ 31 + chi^2_3 (noncentral), far above 11.34
+    assert float(still[95:105, :100].mean()) < 0.01
+    # noise alone: chi^2_3 under its 99 % quantile in 99 % of the entries; overlapping windows
+    # are correlated, so 200 frames x 400 vertices are about 6 x 400 independent draws (binomial
+    # std 0.002) and 50 x 100 about 2 x 100 (std 0.007): bounds at 4-5 std
+    assert 0.98 < float(still[:, 100:].mean()) < 0.999
+    assert 0.95 < float(still[:50, :100].mean())
