@@ -24,7 +24,8 @@ from nodegraph.flags import flags_to_mask
 from .node_inputs import _fit_model, _state_from, _views
 from nodegraph.files import atomic_path, check_output_suffix, files_value, write_npz_atomic
 
-__all__ = ["FIT_FAILURE_REASONS", "MAX_REPROJECTION", "MAX_ENERGY_RMS", "MIN_OUTLIER_ENERGY_RMS", "LandmarkProjection",
+__all__ = ["FIT_FAILURE_REASONS", "absolute_errors",
+           "MAX_REPROJECTION", "MAX_ENERGY_RMS", "MIN_OUTLIER_ENERGY_RMS", "LandmarkProjection",
            "projected_landmarks68", "reprojection_error", "energy_rms", "FlagFailures", "SaveFit", "FitReport"]
 
 FIT_FAILURE_REASONS = ("", "no face or no pose", "energy above factor x the shot's median",
@@ -232,13 +233,28 @@ class FlagFailures(Node):
         if landmarks.points.shape != (frames, 68, 2):
             raise InputError("landmarks", f"expected ({frames}, 68, 2) plate landmarks, found "
                              f"{landmarks.points.shape}")
-        projection = projected_landmarks68(fitted.values, model, camera)
-        reprojection = reprojection_error(projection, landmarks.points)
-        if boxes is None:
-            return reprojection, nothing
-        if boxes.values.shape != (frames, 4):
+        if boxes is not None and boxes.values.shape != (frames, 4):
             raise InputError("boxes", f"expected ({frames}, 4) x0 y0 x1 y1 boxes, found {boxes.values.shape}")
-        return reprojection, energy_rms(energy, boxes.values, projection.eye_px)
+        return absolute_errors(fitted.values, model, camera, landmarks.points, energy,
+                               None if boxes is None else boxes.values)
+
+
+def absolute_errors(fitted: np.ndarray, model: FaceModel, camera: Camera, points: np.ndarray, energy: np.ndarray,
+                    boxes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The absolute checks' measures of a fit against the plate (fit.FlagFailures, fit.RigidPose's retry).
+
+    Args:
+        fitted: (F, 12 + K) pose + weights; model, camera: the fit's; points: (F, 68, 2) the
+            plate's landmarks, pixels; energy: (F,) final energies, 256-crop pixel^2; boxes:
+            (F, 4) the crop boxes, or None.
+    Returns:
+        (F,) `reprojection_error` and (F,) `energy_rms` (NaN without boxes), in eye distances.
+    """
+    projection = projected_landmarks68(fitted, model, camera)
+    reprojection = reprojection_error(projection, points)
+    if boxes is None:
+        return reprojection, np.full(len(energy), np.nan)
+    return reprojection, energy_rms(energy, boxes, projection.eye_px)
 
 
 class SaveFit(Node):

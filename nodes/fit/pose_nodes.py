@@ -23,7 +23,7 @@ from nodegraph import (FRAMEWISE, Camera, FaceModel, ImageSequence, In, InputErr
 from nodegraph.flags import flags_to_mask
 
 from .node_inputs import POSE_NAMES, _checked_plates, _fit_model, _pose_values, _state_from, _views
-from .output_nodes import MAX_ENERGY_RMS, MAX_REPROJECTION, energy_rms, projected_landmarks68, reprojection_error
+from .output_nodes import MAX_ENERGY_RMS, MAX_REPROJECTION, absolute_errors
 from .tuning import PHOTOMETRIC_WEIGHT, photometric_frame_weights, photometric_weight_for
 
 __all__ = ["RigidPose", "Expression"]
@@ -141,16 +141,14 @@ def _landed_wrong(pose: np.ndarray, weights: np.ndarray, energy: np.ndarray, mod
                   sel: np.ndarray) -> np.ndarray:
     """(N,) bool: the frames `sel` whose fit fit.FlagFailures' absolute checks would flag.
 
-    The first camera's check, as fit.FlagFailures makes it (`reprojection_error`, `energy_rms`):
+    The first camera's check, as fit.FlagFailures makes it (`absolute_errors`):
     the fitted 68 landmark vertices projected more than `MAX_REPROJECTION` eye distances RMS
     from the plate's, or (one camera) the energy above `MAX_ENERGY_RMS` eye distances RMS per
     landmark. `pose` (N, 12), `weights` (N, K), `energy` (N,) 256-crop pixel^2 of the frames `sel`.
     """
-    projection = projected_landmarks68(np.concatenate([pose, weights], 1), model, cameras[0])
-    off = reprojection_error(projection, landmarks[0].points[sel]) > MAX_REPROJECTION  # NaN: not checked
-    if len(cameras) == 1:
-        off |= energy_rms(energy, boxes[0].values[sel], projection.eye_px) > MAX_ENERGY_RMS
-    return off
+    reprojection, rms = absolute_errors(np.concatenate([pose, weights], 1), model, cameras[0], landmarks[0].points[sel],
+                                        energy, boxes[0].values[sel] if len(cameras) == 1 else None)
+    return (reprojection > MAX_REPROJECTION) | (rms > MAX_ENERGY_RMS)  # NaN: not checked
 
 
 class _RigidParams(_FitParams):
@@ -222,7 +220,8 @@ class Expression(Node):
     the eyeLook weights from the plate's iris centres when `iris` is connected."""
 
     type_name = "fit.Expression"
-    version = 9  # 9: no photometric term on painted frames, residual-scale weight; 8: outer rounds keep each frame's best state read (fit.solve.fit_stages); 7: eyeLook
+    version = 9  # 9: no photometric term on painted frames, residual-scale weight; 8: outer rounds keep
+    # each frame's best state read (fit.solve.fit_stages); 7: eyeLook
     # weights from the iris centres (`iris`); 6: Levenberg-Marquardt in float64
     kind = FRAMEWISE
     resources = {"gpu": 1}
