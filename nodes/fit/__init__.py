@@ -11,9 +11,9 @@ Importing the package registers the nodes only; torch is imported when a node ru
 """
 
 from .estimation_nodes import EstimateAppearance, EstimateIdentity, PlateCamera
-from .output_nodes import FitReport, FlagFailures, SaveFit
+from .output_nodes import FitReport, FittedLandmarks, FlagFailures, SaveFit
 from .performance import MakePerformance, PosedMesh
 from .pose_nodes import Expression, RigidPose
 
 __all__ = ["PlateCamera", "EstimateAppearance", "EstimateIdentity", "RigidPose", "Expression", "FlagFailures",
-           "SaveFit", "FitReport", "MakePerformance", "PosedMesh"]
+           "FittedLandmarks", "SaveFit", "FitReport", "MakePerformance", "PosedMesh"]

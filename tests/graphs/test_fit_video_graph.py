@@ -43,6 +43,8 @@ def test_fit_video_graph_on_the_astronaut_and_a_face_free_frame(tmp_path):
         assert fit["failed"].tolist() == [False, True]
         assert np.isnan(fit["rotation"][1]).all()
         pts = fit["landmarks68"][0]
+        vertices = fit["landmarks68_vertices"][0]
+        assert np.isnan(fit["landmarks68"][1]).all()
         names = list(fit["expression_names"])
         looks = fit["weights"][0, [i for i, n in enumerate(names) if n.startswith("eyeLook")]]
     # she looks into the camera: the iris reads no look beyond the model's anatomy (its iris sits
@@ -67,6 +69,11 @@ def test_fit_video_graph_on_the_astronaut_and_a_face_free_frame(tmp_path):
     boxes = run_node(DetectFaces, images=seq)["boxes"]
     network68 = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"].points[0]
     err = np.linalg.norm(pts - network68, axis=-1).mean() / inter_ocular_distance(network68)
-    print("astronaut mean error / IOD", err)
-    assert err < 0.10
+    err_vertices = np.linalg.norm(vertices - network68, axis=-1).mean() / inter_ocular_distance(network68)
+    print("astronaut mean error / IOD: read on the fitted head's render", err, "model's landmark vertices", err_vertices)
+    # the points read on the render differ from the plate's by what the fit left unexplained (its
+    # energy_rms, about 0.01-0.05 eye distances on real photos) plus the network's read-to-read
+    # jitter (~0.01); the fixed vertices also carry their own convention's offset (brows, jaw line)
+    assert err < 0.06 and err < err_vertices, (err, err_vertices)
+    assert err_vertices < 0.10
     assert sorted(p.name for p in report.iterdir()) == ["fit.0000.png", "fit.0001.png"]
