@@ -104,7 +104,8 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
                         normal: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], x0: Tensor, *,
                         iterations: int, schedule: LMSchedule = LMSchedule(),
                         retract: Callable[[Tensor, Tensor], Tensor] | None = None,
-                        relinearize: Callable[[Tensor, Tensor], Tensor] | None = None) -> LMResult:
+                        relinearize: Callable[[Tensor, Tensor], Tensor] | None = None,
+                        compact: bool = False) -> LMResult:
     """Minimize |r_b(x_b)|^2 per batch element by Levenberg-Marquardt (module docstring).
 
     Args:
@@ -123,9 +124,19 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
             step: the caller moves its linearization point (e.g. folds a rotation increment into
             its base rotation and zeroes it in x) and returns the equivalent x; the residuals
             at the returned x must equal those at the given x.
+        compact: evaluate only the elements still running. The callbacks then take one more
+            argument, `rows` (R,) int64, the batch indices of the elements they get (x and r
+            hold those R rows): `residuals(x, rows)`, `normal(x, r, rows)` (two outputs only),
+            `relinearize(x, accepted, rows)`. A batch whose elements stop at different
+            iterations costs what its running elements do (the fit's stages: 0.68 of the
+            frame-iterations); each element's result is the same as without it where the
+            callbacks compute each element from its own row only.
     Returns:
         LMResult (x, residuals, cost, lam, iterations).
     """
+    if compact:
+        return _levenberg_marquardt_compact(residuals, normal, x0, iterations=iterations, schedule=schedule,
+                                            retract=retract, relinearize=relinearize)
     s = schedule
     x = x0
     b = x.shape[0]
@@ -166,6 +177,60 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
         cost = torch.where(better, cost_new, cost)
         if relinearize is not None:
             x = relinearize(x, better)
+        if not bool(running.any()):
+            break
+    return LMResult(x, r, cost, lam, done)
+
+
+def _levenberg_marquardt_compact(residuals: Callable[..., Tensor], normal: Callable[..., tuple[Tensor, Tensor]],
+                                 x0: Tensor, *, iterations: int, schedule: LMSchedule,
+                                 retract: Callable[[Tensor, Tensor], Tensor] | None,
+                                 relinearize: Callable[..., Tensor] | None) -> LMResult:
+    """`levenberg_marquardt(compact=True)`: the same iterations, each on the running elements' rows only."""
+    s = schedule
+    b = x0.shape[0]
+    every = torch.arange(b, device=x0.device)
+    x = x0.clone()
+    r = residuals(x, every)
+    cost = (r * r).sum(1)
+    lam = torch.full((b,), s.lam0, dtype=x.dtype, device=x.device)
+    running = torch.ones(b, dtype=torch.bool, device=x.device)
+    done = 0
+    for _ in range(iterations):
+        done += 1
+        rows = every if bool(running.all()) else torch.nonzero(running)[:, 0]
+        x_run, r_run, cost_run, lam_run = x[rows], r[rows], cost[rows], lam[rows]
+        linear = normal(x_run, r_run, rows)
+        if len(linear) != 2:
+            raise ValueError(f"normal: expected (J^T J, J^T r) with compact=True, found {len(linear)} outputs")
+        jtj, jtr = linear
+        better = torch.zeros(len(rows), dtype=torch.bool, device=x.device)
+        for _try in range(s.tries):
+            step = damped_step(jtj, jtr, lam_run, diag_floor=s.diag_floor, floor=s.floor)
+            x_new = x_run + step if retract is None else retract(x_run, step)
+            r_new = residuals(x_new, rows)
+            cost_new = (r_new * r_new).sum(1)
+            better = cost_new < cost_run
+            lam_run = torch.where(better, (lam_run * s.down).clamp_min(s.lam_min),
+                                  (lam_run * s.up).clamp_max(s.lam_max))
+            if bool(better.any()):
+                break
+        lam = lam.index_copy(0, rows, lam_run)
+        if not bool(better.any()):
+            if s.stop_when_stuck:
+                break
+            continue
+        gain = (cost_run - cost_new) / cost_run.clamp_min(1e-12)
+        running = running.index_copy(0, rows, ~(better & (gain < s.rel_tol)))
+        x_run = torch.where(better[:, None], x_new, x_run)
+        if r_new.shape[1] != r.shape[1]:  # the residual count follows x (a coverage): pad with zeros,
+            m = max(r_new.shape[1], r.shape[1])  # which leave every cost unchanged
+            r_new, r, r_run = (torch.nn.functional.pad(v, (0, m - v.shape[1])) for v in (r_new, r, r_run))
+        r = r.index_copy(0, rows, torch.where(better[:, None], r_new, r_run))
+        cost = cost.index_copy(0, rows, torch.where(better, cost_new, cost_run))
+        if relinearize is not None:
+            x_run = relinearize(x_run, better, rows)
+        x = x.index_copy(0, rows, x_run)
         if not bool(running.any()):
             break
     return LMResult(x, r, cost, lam, done)
