@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("numba")
 
 from nodes.geometry.mesh import triangle_adjacency  # noqa: E402
-from nodes.render import raster, renderer  # noqa: E402
+from nodes.render import pixel_kernels, raster, renderer  # noqa: E402
 from nodes.render.renderer import render_mesh, shade_pixels, sh_from_lights, vertex_normals  # noqa: E402
 
 
@@ -124,7 +124,8 @@ def test_compiled_path_refuses_cuda_tensors_only_when_asked():
 
 
 def test_pruned_silhouette_walk_finds_the_same_pairs(rng):
-    # the walk is skipped from triangles farther than WALK_STEPS - 1 steps from any silhouette edge;
+    # the walk is skipped from triangles farther than WALK_STEPS - 1 steps from any silhouette edge
+    # (PRUNE_DISTANCE) or for pairs no silhouette edge passes within EDGE_MARGIN of (PRUNE_MASK);
     # on renders of bumpy spheres at two sizes the pairs must not change
     verts, faces, e, k = _bumpy_sphere(rng, 3)
     adjacency = triangle_adjacency(faces)
@@ -139,13 +140,62 @@ def test_pruned_silhouette_walk_finds_the_same_pairs(rng):
     found = 0
     for tri, zbuf, pix in cases:
         outs = []
-        for prune in (False, True):
+        for prune in (raster.PRUNE_NONE, raster.PRUNE_DISTANCE, raster.PRUNE_MASK):
             outs.append(raster._find_pairs(tri.astype(np.int64), zbuf, np.ascontiguousarray(pix, np.float64), faces,
                                            adjacency, raster.WALK_STEPS, prune))
-        for a, b in zip(*outs):
-            np.testing.assert_array_equal(a, b)
+        for other in outs[1:]:
+            for a, b in zip(outs[0], other):
+                np.testing.assert_array_equal(a, b)
         found += len(outs[0][0])
     assert found > 100
+
+
+def test_masked_silhouette_walk_on_the_head_finds_the_same_pairs():
+    # the pair masks against the unpruned walk on the ICT head: turned 0 to 170 degrees, 64^2 to
+    # 512^2, one image and a batch of two (the masks per image inside the kernel); and an image
+    # whose mesh has a silhouette edge too short for the masks' margin falls back (same pairs)
+    from scipy.spatial.transform import Rotation
+
+    from nodes.io.face_model import load_face_model
+    from nodes.render.appearance import visible_faces
+
+    model = load_face_model()
+    faces = np.ascontiguousarray(visible_faces(model.faces, model.neutral.shape[0]), np.int64)
+    adjacency = triangle_adjacency(faces)
+    e = np.array([[1.0, 0, 0, 0], [0, -1, 0, 1.0], [0, 0, -1, 55.0], [0, 0, 0, 1]], np.float32)
+    found = 0
+    for size in (64, 512):
+        k = np.array([520.0 * size / 256, 520.0 * size / 256, (size - 1) / 2, (size - 1) / 2], np.float32)
+        views = []
+        for yaw, pitch in ((0, 0), (35, -10), (-60, 15), (170, 20)):
+            rot = Rotation.from_euler("yx", [yaw, pitch], degrees=True).as_matrix()
+            v = (model.neutral @ rot.T).astype(np.float32)
+            pix, depth = pixel_kernels.project_forward(v[None], e[None], k[None], None)
+            views.append((pix, depth))
+        pix = np.concatenate([p for p, _ in views]).astype(np.float64)
+        depth = np.concatenate([d for _, d in views])
+        tri, zbuf = raster.rasterize_triangles(pix, depth, faces, size, size, triangle_dtype=np.int64)
+        for b in range(len(views)):
+            args = (tri[b:b + 1], zbuf[b:b + 1], pix[b:b + 1], faces, adjacency, raster.WALK_STEPS)
+            ref = raster._find_pairs(*args, raster.PRUNE_NONE)
+            for a, c in zip(ref, raster._find_pairs(*args, raster.PRUNE_MASK)):
+                np.testing.assert_array_equal(a, c)
+            found += len(ref[0])
+        args = (tri[:2], zbuf[:2], pix[:2], faces, adjacency, raster.WALK_STEPS)
+        for a, c in zip(raster._find_pairs(*args, raster.PRUNE_NONE), raster._find_pairs(*args, raster.PRUNE_MASK)):
+            np.testing.assert_array_equal(a, c)
+    assert found > 1000
+    # a silhouette edge 1e-12 px long: the masks cannot bound the walk's rounding there
+    facing = np.zeros(len(faces), np.bool_)
+    masks = np.zeros((64, 64), np.bool_), np.zeros((64, 64), np.bool_)
+    short = pix[:1].copy()
+    t = int(np.flatnonzero(adjacency.min(1) < 0)[0])  # a triangle on the mesh's open border
+    edge = int(np.flatnonzero(adjacency[t] < 0)[0])
+    k1, k2 = faces[t, (edge + 1) % 3], faces[t, (edge + 2) % 3]
+    short[0, k2] = short[0, k1] + 1e-12
+    mode = raster._walk_kernel(short, 0, faces, adjacency, raster.WALK_STEPS, raster.PRUNE_MASK,
+                               np.zeros(1, np.int64), np.zeros(0, np.int64), facing, np.zeros(0, np.int64), *masks)
+    assert mode == raster.PRUNE_NONE
 
 
 def test_compiled_projection_and_background_match_the_torch_path(rng):
