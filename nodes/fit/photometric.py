@@ -236,8 +236,11 @@ class PhotoTerm:
         inactive[:, active] = 0.0
         if cache is not None and "inactive" in cache and torch.equal(cache["inactive"], inactive):
             return cache["term"]
-        term = cls(samples, views, weight, samples.neutral + torch.einsum("bk,bclkd->bcld", inactive, samples.deltas),
-                   basis)
+        # all inactive weights 0 (the rigid fit; the expression's start): the neutral itself (the sum
+        # over the K shapes was 11 ms for 8 frames of 1401 samples)
+        local0 = samples.neutral if not bool(inactive.any()) else \
+            samples.neutral + torch.einsum("bk,bclkd->bcld", inactive, samples.deltas)
+        term = cls(samples, views, weight, local0, basis)
         if cache is not None:
             cache["inactive"], cache["term"] = inactive, term
         return term

@@ -476,7 +476,9 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         shape_list = list(stage.shapes)
         p_basis = photo.deltas[:, :, :, shape_list].transpose(-1, -2).contiguous()  # (B, C, N, 3, S), read
         # at every residual and Jacobian: contiguous once (the expression stage's residuals 9 -> 5 ms)
-        photo_cache: dict = {}  # the term about the inactive weights, which the stage does not move
+        # the term about the stage's start: the inactive weights do not move in a stage, so the
+        # samples' local points with them (`PhotoTerm.about`) hold for every linearization
+        photo_term = PhotoTerm.about(photo, views, photo_weight, state.weights, shape_list, p_basis)
     dev, dt = neutral.device, neutral.dtype
     w_np = landmark_weights(stage.landmarks, eyelid=eyelid_weight, mouth=stage.mouth_weight, jaw=stage.jaw_weight)
     w_lm = torch.as_tensor(w_np, dtype=dt, device=dev)
@@ -509,14 +511,17 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         on the frames still running only (`levenberg_marquardt(compact=True)`)."""
         if len(rows) == b and bool((rows == every).all()):
             return dict(views=views, anchors=anchors, neutral=neutral, deltas=deltas, w_lm=w_lm, rigid=rigid_prior,
-                        photo=photo if use_photo else None, p_basis=p_basis if use_photo else None, cache={})
-        pick = None if not use_photo else photo._replace(
-            **{f: getattr(photo, f)[rows] for f in ("vertices", "bary", "colour", "weight", "neutral", "deltas")},
-            plates=photo.plates.unflatten(0, (b, n_cams))[rows].flatten(0, 1))
-        return dict(views=frames_of(views, rows), anchors=Anchors(*(a[rows] for a in anchors)), neutral=neutral[rows],
+                        term=photo_term if use_photo else None)
+        sub = frames_of(views, rows)
+        term = None
+        if use_photo:
+            pick = photo._replace(
+                **{f: getattr(photo, f)[rows] for f in ("vertices", "bary", "colour", "weight", "neutral", "deltas")},
+                plates=photo.plates.unflatten(0, (b, n_cams))[rows].flatten(0, 1))
+            term = PhotoTerm(pick, sub, photo_weight, photo_term.local0[rows], photo_term.basis[rows])
+        return dict(views=sub, anchors=Anchors(*(a[rows] for a in anchors)), neutral=neutral[rows],
                     deltas=deltas[rows], w_lm=w_lm[rows] if w_lm.ndim == 3 else w_lm,
-                    rigid=None if rigid_prior is None else PoseState(*(a[rows] for a in rigid_prior)), photo=pick,
-                    p_basis=p_basis[rows] if use_photo else None, cache={})
+                    rigid=None if rigid_prior is None else PoseState(*(a[rows] for a in rigid_prior)), term=term)
 
     def linearize(rot: Tensor, trans: Tensor, weights: Tensor,
                   d: dict[str, Any]) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], tuple[Tensor, ...]]]:
@@ -532,8 +537,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
                               edge_weight=edge_weight, rigid_prior=d["rigid"],
                               rigid_prior_weight=rigid_prior_weight, iris=iris)
         x0 = unknowns(trans, weights)
-        term = PhotoTerm.about(d["photo"], views, photo_weight, weights, shape_list, d["p_basis"],
-                               cache=d["cache"]) if use_photo else None
+        term = d["term"]
 
         def residuals(xf: Tensor) -> Tensor:
             xa = full(xf, x0)
