@@ -13,17 +13,27 @@ Then the agreement on renders at five poses (yaw/pitch/jaw): the mean distance o
 network's 68 points to the projected model landmarks, in inter-ocular distances, and the
 nose-tip offset of the two schemes (face-mesh 4 vs model landmark 30).
 CUDA rows appear when a GPU is present.
+
+OpenMP threads wait passively (OMP_WAIT_POLICY=PASSIVE unless set), as under the `nodegraph`
+command (`nodegraph.cli.main`): with torch's default active wait, its second OpenMP thread spins
+after every parallel op (the bench's clone and sum, autograd's adds, the networks' layers) on
+the core the renderer's second half (`nodes.render.halves`) or another process needs. At 8db5e8d,
+`--threads 2 --repeat 9` at load 1.7-2.4 on 2 cores, OMP_WAIT_POLICY=ACTIVE against passive:
+render 256^2 fwd+bwd 84.2 against 28.6 ms (wall), 512^2 152.0 / 78.9, detector 285 / 16.6.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
-import numpy as np
-import torch
-from _timing import median_ms
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # read when torch loads, below
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from _timing import median_ms  # noqa: E402
 
 
 def wall_and_cpu_ms(fn, repeat: int) -> tuple[float, float]:
