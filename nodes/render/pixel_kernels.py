@@ -280,16 +280,17 @@ def _flush_sh_grad(grad_sh, bs, acc):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+def _shade_backward_kernel(pix, inv_depth, normals, albedo, sh, pixels, corners, height, width,
                            g_colour, g_geometry, image_rows, grad_pix, grad_depth, grad_normals, grad_albedo,
                            grad_sh, n_lo, n_hi):  # pragma: no cover - compiled
-    """Covered pixels n_lo..n_hi - 1; grad_sh (B or 1, 9, 3) float64. The gradients w.r.t. the
-    colour (first 3 columns of g_colour) and the depth and barycentrics (g_geometry's 4 columns)
-    of covered pixel n are in row n, or with `image_rows` row pixels[n] (the image layout of
-    `shade_image`); an empty array (0 rows) is zero."""
-    nv = depth.shape[1]
+    """Covered pixels n_lo..n_hi - 1; grad_sh (B or 1, 9, 3) float64; inv_depth (B, V) float64,
+    1 / the vertices' depth (once per vertex, not three divisions per pixel). The gradients
+    w.r.t. the colour (first 3 columns of g_colour) and the depth and barycentrics (g_geometry's
+    4 columns) of covered pixel n are in row n, or with `image_rows` row pixels[n] (the image
+    layout of `shade_image`); an empty array (0 rows) is zero."""
+    nv = inv_depth.shape[1]
     pix2 = pix.reshape(-1, 2)
-    dep = depth.reshape(-1)
+    inv_dep = inv_depth.reshape(-1)
     nrm = normals.reshape(-1, 3)
     gp2 = grad_pix.reshape(-1, 2)
     gd1 = grad_depth.reshape(-1)
@@ -322,7 +323,7 @@ def _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, hei
         l0 = cr0 * inv_area
         l1 = cr1 * inv_area
         l2 = 1.0 - l0 - l1
-        iz0, iz1, iz2 = 1.0 / dep[r0], 1.0 / dep[r1], 1.0 / dep[r2]
+        iz0, iz1, iz2 = inv_dep[r0], inv_dep[r1], inv_dep[r2]
         m0, m1, m2 = l0 * iz0, l1 * iz1, l2 * iz2
         s = m0 + m1 + m2
         inv_s = 1.0 / s
@@ -487,11 +488,13 @@ def _shade_backward_halves(pix: np.ndarray, depth: np.ndarray, normals: np.ndarr
     """`_shade_backward_kernel` over two fixed halves of the pixels (arguments as there)."""
     dt = pix.dtype
     n = len(pixels)
+    with np.errstate(divide="ignore", invalid="ignore"):  # as the kernel's float64 1.0 / z (inf at 0)
+        inv_depth = 1.0 / depth.astype(np.float64)
 
     def half(n_lo: int, n_hi: int) -> list[np.ndarray]:
         grads = [np.zeros(pix.shape, dt), np.zeros(depth.shape, dt), np.zeros(normals.shape, dt),
                  np.zeros(albedo.shape, dt), np.zeros(sh.shape, np.float64)]
-        _shade_backward_kernel(pix, depth, normals, albedo, sh, pixels, corners, height, width,
+        _shade_backward_kernel(pix, inv_depth, normals, albedo, sh, pixels, corners, height, width,
                                g_colour, g_geometry, image_rows, *grads, n_lo, n_hi)
         return grads
 
