@@ -101,7 +101,10 @@ class TrackedFaces(NamedTuple):
     in (x0 y0 x1 y1, pixels, before its turn; NaN where failed), `rolls` (F,) that crop's turn,
     radians clockwise on screen (NaN where failed), `points` (F, 468, 2) face-mesh points, pixels
     (NaN where failed), `presence` (F,) the face mesh's presence in [0, 1] (0 where no face was
-    read), `failed` (F,) bool, `reasons` (F,) int64 index into `FAILURE_REASONS`, `detected` (F,)
+    read), `failed` (F,) bool; a frame failed only for its read (reason 2, presence under the bar,
+    or 4, two reads disagree: a face the detector found that the face mesh cannot read, such as a
+    profile past ~60 deg of yaw) keeps the box, roll, points and presence of its best read
+    (`weak_reads`), `reasons` (F,) int64 index into `FAILURE_REASONS`, `detected` (F,)
     bool: the detector ran on the frame, `iris` (F, 2, 5, 2) iris points, pixels
     (`nodes.landmarks.iris.iris_landmarks`; NaN where failed), `rereads` (F,) int64: face-mesh
     reads after the first in a followed frame."""
@@ -292,7 +295,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 enhance: bool = True, quarter_turns: bool = True, full_range: bool = True,
                 sharpen_amount: float = SHARPEN_AMOUNT, sharpened_min_presence: float = SHARPENED_MIN_PRESENCE,
                 refind_max_zoom: float = REFIND_MAX_ZOOM, framings: Sequence[tuple[float, float, float]] = FRAMINGS,
-                progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
+                weak_reads: bool = True, progress: Callable[[float, str], None] | None = None) -> TrackedFaces:
     """Follow the chosen face through `frames` (see the module docstring).
 
     Args:
@@ -325,6 +328,12 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
             with the confirming read is a detected face's points (`FRAMINGS`; empty: one read).
         refind_max_zoom: a face re-found where it was last seen (`refind_face`) is taken only when
             the size of its points' crop is within this factor of its size then (reason 5).
+        weak_reads: a frame that fails only for its read (reason 2: the face mesh's presence
+            stays under the bar; 4: two reads disagree) keeps its best read's box, roll, points and
+            presence (the detection's first read of highest presence), still failed: where
+            the network cannot see the far side of a turned head (renders of the bundled head at
+            70 / 80 / 90 deg of yaw: presence 0.005 / 0.004 / 0.001, the profile line read 7 / 12
+            / 20% of the nose-bridge-to-chin length off) a user sees where the face is.
         progress: called with (fraction done, message).
     Returns:
         TrackedFaces.
@@ -342,6 +351,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
     crop, crop_roll = None, 0.0  # the next frame's crop (None: detect)
     latest, before = None, None  # the landmark crops (box, roll) of the last two frames read (None: none)
     last_box, lost_for = None, 0  # the followed face's detector-sized box when last seen
+    weak: list[tuple[np.ndarray, float, np.ndarray, float]] = []  # this frame's best read under the bar
 
     def read(image: torch.Tensor, box: np.ndarray, roll: float) -> tuple[np.ndarray, float]:
         points, presence = face_landmarks(image, box[None], mesh, np.array([roll]))
@@ -372,6 +382,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 if float(pres[0]) >= least_presence:
                     break
             out.presence[f] = max(float(pres[0]), out.presence[f])
+            if not weak or float(pres[0]) > weak[0][1]:  # kept if the frame fails for this read (reason 2 or 4)
+                weak[:] = [(pts[0].double().cpu().numpy(), float(pres[0]), box, first_roll + extra)]
             if float(pres[0]) >= least_presence:  # read again in the crop of its own points: agree?
                 first = pts[0].double().cpu().numpy()
                 roll = float(points_roll(first))
@@ -426,6 +438,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 out.detected[f] = True
                 refind = last_box is not None and lost_for < refind_frames
                 sharpened, found, reason = False, None, 1
+                weak.clear()
                 for look in LOOKS:  # the frame, turned a quarter each way, sharpened: until one is confirmed
                     if (look[0] and not enhance) or (look[1] and not quarter_turns) or (look[2] and not full_range):
                         continue
@@ -438,6 +451,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                     reason = max(reason, look_reason)  # the most informative: a face seen but not read
                 if found is None:
                     out.reasons[f] = reason
+                    if weak_reads and reason in (2, 4) and weak:
+                        out.points[f], out.presence[f], out.boxes[f], out.rolls[f] = weak[0]
                     crop, latest, before, lost_for = None, None, None, lost_for + 1
                     if last_box is not None and lost_for >= refind_frames:
                         last_box = None  # give up on the lost face: the choice is made afresh

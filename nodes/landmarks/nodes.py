@@ -301,7 +301,8 @@ class TrackFaces(Node):
     """
 
     type_name = "landmarks.TrackFaces"
-    version = 7  # 7: `mean_of_framings` (the fit graphs read once, as the fit reads its renders);
+    version = 8  # 8: `weak_reads` (a face found but not read at min_presence keeps its best read, failed);
+    # 7: `mean_of_framings` (the fit graphs read once, as the fit reads its renders);
     # 6: a detected face's points are the mean of 15 crop framings' reads (FRAMINGS);
     # 5: a re-found face must keep its size (reason 5); 4: sharpened looks at amount 6,
     # confirmed at presence 0.9; 3: the full-range look
@@ -356,18 +357,30 @@ class TrackFaces(Node):
                                        "since the fit compares the plate's reading with one reading of its render "
                                        "and a mean on one side only is a bias (skimage's astronaut: energy 996 "
                                        "one read, 1786 with the mean, every expression weight left at 0).")
+        weak_reads: bool = Param(True, description="A frame that fails only for its read (reason 2: the face "
+                                 "mesh's presence stays under min_presence; 4: two reads disagree; a face the "
+                                 "detector found that the face mesh cannot read, e.g. a profile past about 60 deg "
+                                 "of yaw) keeps the box, roll, points and presence of its best read; it stays "
+                                 "failed and its points' "
+                                 "confidence 0, so the fit leaves it out. Renders of the bundled head at 70 / "
+                                 "80 / 90 deg of yaw: presence 0.005 / 0.004 / 0.001, the profile line (nose, "
+                                 "lips, chin) read 7 / 12 / 20% of the nose-bridge-to-chin length off. False: "
+                                 "NaN there, as for the other failures.")
 
     images = In(ImageSequence, doc="RGB frames (converted to sRGB for the networks).")
     boxes = Out(ParamSequence, doc="x0 y0 x1 y1: the square crop the points were read in, pixels (turned by "
-                "`rolls` about its centre; NaN where failed).")
-    rolls = Out(ParamSequence, doc="roll: the crop's turn, radians, clockwise on screen (NaN where failed).")
+                "`rolls` about its centre; NaN where failed, except the weak reads: `weak_reads`).")
+    rolls = Out(ParamSequence, doc="roll: the crop's turn, radians, clockwise on screen (NaN where failed, except "
+                "the weak reads).")
     failed = Out(ParamSequence, doc="failed: 1 where no face was read, else 0.")
     reasons = Out(ParamSequence, doc="reason: why a frame failed, as a code: "
                   + "; ".join(f"{i} {r}" for i, r in enumerate(FAILURE_REASONS) if i) + " (0: not failed).")
-    landmarks468 = Out(Landmarks2D, doc="(F, 468, 2) face-mesh points, pixels (NaN where failed); "
-                       "confidence = presence.")
-    landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence.")
-    presence = Out(ParamSequence, doc="presence: face presence in [0, 1] (0 where failed).")
+    landmarks468 = Out(Landmarks2D, doc="(F, 468, 2) face-mesh points, pixels (NaN where failed, except the "
+                       "weak reads); confidence = presence (0 where failed).")
+    landmarks68 = Out(Landmarks2D, doc="(F, 68, 2) Multi-PIE points, pixels; confidence = presence (0 where "
+                      "failed).")
+    presence = Out(ParamSequence, doc="presence: face presence in [0, 1] of the points given (0 where none: "
+                   "failed, except the weak reads).")
     iris = Out(Landmarks2D, doc="(F, 10, 2) iris points, pixels (as `landmarks.FaceLandmarks`; NaN where "
                "failed or without `with_iris`).")
 
@@ -380,9 +393,12 @@ class TrackFaces(Node):
                           box_scale=p.box_scale, min_presence=p.min_presence, refind_frames=p.refind_frames,
                           reread=p.reread, velocity=p.velocity, roll_passes=p.roll_passes, with_iris=p.with_iris,
                           enhance=p.enhance, quarter_turns=p.quarter_turns, full_range=p.full_range,
-                          framings=FRAMINGS if p.mean_of_framings else (), progress=self.progress)
+                          framings=FRAMINGS if p.mean_of_framings else (), weak_reads=p.weak_reads,
+                          progress=self.progress)
         ok = (~out.failed).astype(np.float32)
         confidence = (out.presence * ok).astype(np.float32)[:, None]
+        read = np.isfinite(out.points).all((1, 2))
+        presence = np.where(read, out.presence, 0.0).astype(np.float32)[:, None]
         points = out.points.astype(np.float32)
         return {"boxes": ParamSequence(out.boxes.astype(np.float32), list(BOX_NAMES)),
                 "rolls": ParamSequence(out.rolls.astype(np.float32)[:, None], ["roll"]),
@@ -390,7 +406,7 @@ class TrackFaces(Node):
                 "reasons": ParamSequence(out.reasons.astype(np.float32)[:, None], ["reason"]),
                 "landmarks468": Landmarks2D(points, np.repeat(confidence, 468, 1)),
                 "landmarks68": Landmarks2D(points[:, MEDIAPIPE_TO_68], np.repeat(confidence, 68, 1)),
-                "presence": ParamSequence(confidence, ["presence"]),
+                "presence": ParamSequence(presence, ["presence"]),
                 "iris": Landmarks2D(out.iris.reshape(-1, 10, 2).astype(np.float32), np.repeat(confidence, 10, 1))}
 
 
@@ -490,10 +506,11 @@ def draw_overlay(pixels: np.ndarray, box: np.ndarray | None, point_sets: list[tu
 
 
 class LandmarkOverlays(Node):
-    """Write one PNG per frame with the crop box (yellow), 468 points (green) and 68 points (red)."""
+    """Write one PNG per frame with the crop box (yellow), 468 points (green) and 68 points (red);
+    a failed frame's best read (landmarks.TrackFaces' `weak_reads`, confidence 0) in grey."""
 
     type_name = "landmarks.LandmarkOverlays"
-    version = 1
+    version = 2  # 2: points of confidence 0 (a failed frame's weak read) drawn grey
     kind = FRAMEWISE
     writes_files = True
 
@@ -514,8 +531,10 @@ class LandmarkOverlays(Node):
         pixels = network_images(images)
         written = []
         for i, frame in enumerate(self.frames):
-            img = draw_overlay(pixels[i], boxes.values[i], [(landmarks468.points[i], (0.0, 1.0, 0.0)),
-                                                             (landmarks68.points[i], (1.0, 0.0, 0.0))])
+            weak = not (landmarks68.confidence[i] > 0).any()  # a failed frame's best read: grey
+            img = draw_overlay(pixels[i], boxes.values[i],
+                               [(landmarks468.points[i], (0.55, 0.55, 0.55) if weak else (0.0, 1.0, 0.0)),
+                                (landmarks68.points[i], (0.8, 0.8, 0.8) if weak else (1.0, 0.0, 0.0))])
             path = folder / f"overlay.{frame:04d}.png"
             with atomic_path(path) as tmp:
                 write_image(tmp, img, ["R", "G", "B"], "uint8")

@@ -80,7 +80,12 @@ def test_a_face_free_photo_stays_failed_with_every_look(name):
     out = run_node(TrackFaces, {"with_iris": False}, images=ImageSequence(frames, colour_space="srgb"))
     assert out["failed"].values[:, 0].tolist() == [1, 1, 1, 1]
     assert set(out["reasons"].values[:, 0].tolist()) <= {1, 2, 4}
-    assert np.isnan(out["landmarks468"].points).all()
+    # a detection the face mesh could not read keeps its best read (`weak_reads`), flagged: no
+    # point of it counts (confidence 0, so the fit leaves the frame out); nothing detected: NaN
+    assert (out["landmarks468"].confidence == 0).all()
+    reasons = out["reasons"].values[:, 0]
+    assert (np.isnan(out["landmarks468"].points).all((1, 2)) == (reasons == 1)).all()
+    assert ((out["presence"].values[:, 0] == 0) == (reasons == 1)).all()
 
 
 def test_a_small_face_rolled_90_deg_is_found_in_the_frame_turned_back():
@@ -125,4 +130,5 @@ def test_a_face_found_sharpened_needs_presence_0_9():
     img = np.ascontiguousarray(degrade(np.asarray(skimage_data.rocket(), np.float32) / 255.0, "dark"))[None]
     assert not track_faces(img, with_iris=False, sharpened_min_presence=0.5).failed[0]  # the control
     out = track_faces(img, with_iris=False)
-    assert out.failed[0] and np.isnan(out.points).all()
+    assert out.failed[0] and out.reasons[0] in (2, 4)  # kept as a weak read (`weak_reads`), flagged
+    assert np.isnan(track_faces(img, with_iris=False, weak_reads=False).points).all()
