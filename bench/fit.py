@@ -1,7 +1,7 @@
 """Bench of the deep-energy fit (nodes/fit): seconds per frame of detection + landmarks,
 appearance, rigid and expression stages, and the synthetic accuracy table.
 
-Usage: nice python bench/fit.py [--frames 50] [--size 256] [--seed 0] [--rounds 4]
+Usage: nice python bench/fit.py [--frames 50] [--size 256] [--seed 0] [--rounds 4] [--iterations 10]
 Runs on the CPU (this machine has no GPU); torch threads as torch chooses.
 """
 
@@ -35,6 +35,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--iterations", type=int, default=None, help="fit.RigidPose / fit.Expression iterations "
+                    "(Levenberg-Marquardt iterations per stage, at most; the nodes' default 10)")
     ap.add_argument("--noise", type=float, default=0.005, help="plate noise (standard deviation, linear)")
     ap.add_argument("--identity", default="estimate", choices=["estimate", "mean", "truth"],
                     help="truth: the plates' own identity, read from a file (the fit without identity error)")
@@ -115,6 +117,8 @@ def main() -> None:
     fitted = ident["fitted_model"]
     t, c = time.perf_counter(), time.process_time()
     fit_params = {"rounds": args.rounds}
+    if args.iterations is not None:
+        fit_params["iterations"] = args.iterations
     if args.photometric is not None:
         fit_params["photometric_weight"] = args.photometric
     common = dict(common, images=[seq])
