@@ -20,7 +20,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 SCRIPTS = ["framework_overhead", "synth_performance", "stabilize", "stabilize_head", "detect_faces",
-           "landmark_networks", "render_landmarks", "fit", "temporal", "smoothing", "dynamics", "export", "gpu", "profile_graphs"]
+           "landmark_networks", "render_landmarks", "fit", "profile_fit", "temporal", "smoothing", "dynamics", "export", "gpu", "profile_graphs"]
 
 
 def run_one(name: str, timeout: float) -> tuple[float, str, list[str]]:
