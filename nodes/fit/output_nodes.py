@@ -421,10 +421,11 @@ class SaveFit(Node):
 
 
 class FitReport(Node):
-    """One PNG per frame: the render blended over the plate, plate landmarks (green) and render landmarks (red)."""
+    """One PNG per frame: the render blended over the plate, plate landmarks (green; grey where their
+    confidence is 0, a failed frame's weak read) and the fitted head's (red, `read_fitted_landmarks`)."""
 
     type_name = "fit.FitReport"
-    version = 2
+    version = 3  # 3: plate points of confidence 0 (landmarks.TrackFaces 8's weak reads) drawn grey
     kind = FRAMEWISE
     writes_files = True
     resources = {"gpu": 1}
@@ -467,7 +468,8 @@ class FitReport(Node):
             if frame % self.params.every:
                 continue
             img = plate[i]
-            points = [(landmarks.points[i], (0.0, 1.0, 0.0))]
+            weak = not (landmarks.confidence[i] > 0).any()  # a failed frame's best read
+            points = [(landmarks.points[i], (0.6, 0.6, 0.6) if weak else (0.0, 1.0, 0.0))]
             v = fitted.values[i]
             if np.isfinite(v).all() and not failed[i]:
                 state = _state_from(v[None, :12], v[None, 12:12 + k], self.device)

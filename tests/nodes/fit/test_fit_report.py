@@ -18,7 +18,7 @@ SIZE = 512
 FACING = np.diag([1.0, -1.0, -1.0])  # the model (y up, z out of the face) facing a camera looking down +z
 
 
-def _report(tmp_path, blend: float, failed: float = 0.0) -> np.ndarray:
+def _report(tmp_path, blend: float, failed: float = 0.0, confidence: float = 1.0) -> np.ndarray:
     model = load_face_model()
     camera = Camera.from_fov(SIZE, SIZE, 30.0)
     k = len(model.expression_names)
@@ -28,10 +28,10 @@ def _report(tmp_path, blend: float, failed: float = 0.0) -> np.ndarray:
     half, centre = 0.65 * (hi - lo).max(), (lo + hi) / 2
     box = np.concatenate([centre - half, centre + half])[None].astype(np.float32)
     plate = np.full((1, SIZE, SIZE, 3), 0.3, np.float32)
-    folder = tmp_path / f"blend{blend}_{failed}"
+    folder = tmp_path / f"blend{blend}_{failed}_{confidence}"
     run_node(FitReport, {"folder": str(folder), "blend": blend},
              images=ImageSequence(plate, colour_space="srgb"),
-             landmarks=Landmarks2D(marks, np.ones((1, 68), np.float32)),
+             landmarks=Landmarks2D(marks, np.full((1, 68), confidence, np.float32)),
              boxes=ParamSequence(box, ["x0", "y0", "x1", "y1"]), camera=camera, model=model,
              fitted=ParamSequence(fitted, [f"v{i}" for i in range(fitted.shape[1])]),
              flags=ParamSequence(np.array([[failed]], np.float32), ["failed"]))
@@ -58,3 +58,12 @@ def test_the_overlay_shows_the_fitted_head_inside_its_box_and_nothing_far_outsid
     # a failed frame shows the plate and the plate's points only: on the face only their dots and lines
     failed, _, _ = _report(tmp_path, 0.5, failed=1.0)
     assert np.mean(np.abs(failed - points_only).max(-1)[cheeks] > 0.02) < 0.2
+
+
+def test_a_failed_frames_weak_read_is_drawn_grey(tmp_path):
+    # landmarks.TrackFaces 8 keeps a failed frame's best read with confidence 0: drawn grey, not green
+    read, _, marks = _report(tmp_path, 0.0, failed=1.0, confidence=1.0)
+    weak, _, _ = _report(tmp_path, 0.0, failed=1.0, confidence=0.0)
+    x, y = np.round(marks[30]).astype(int)  # the nose tip's dot
+    assert read[y, x, 1] > 0.9 and read[y, x, 0] < 0.1, read[y, x]
+    assert np.allclose(weak[y, x], 0.6, atol=0.01), weak[y, x]
