@@ -13,6 +13,7 @@ writes happen in a background thread.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import multiprocessing
@@ -294,10 +295,29 @@ class _BackgroundStores:
 _STORES = _BackgroundStores()
 
 
+PRELOAD_EXIT_WAIT_S = 120.0
+"""At exit, how long to wait for a preload still importing (`preload`)."""
+
+_PRELOADS: list[threading.Thread] = []
+
+
+def _join_preloads() -> None:
+    """Let a preload finish its import before the interpreter exits: a run that fails within
+    seconds (stabilize.json with init_group=nosuch, under load) exited while the daemon thread
+    was inside torch's import, and the process aborted ("terminate called without an active
+    exception", exit -6) after printing its exit-2 error."""
+    for thread in _PRELOADS:
+        thread.join(PRELOAD_EXIT_WAIT_S)
+
+
+atexit.register(_join_preloads)
+
+
 def preload(modules: Sequence[str]) -> None:
     """Import slow modules that planned nodes will import (`Node.preload`) in a background
     thread, so the import overlaps upstream work instead of delaying the node. An import
-    that fails here is left for the node itself to report."""
+    that fails here is left for the node itself to report. The interpreter waits for the
+    thread at exit (`_join_preloads`)."""
     missing = [m for m in dict.fromkeys(modules) if m not in sys.modules]
     if not missing:
         return
@@ -311,7 +331,9 @@ def preload(modules: Sequence[str]) -> None:
             except Exception:  # noqa: BLE001 - the node's own import raises it properly
                 pass
 
-    threading.Thread(target=work, name="nodegraph-preload", daemon=True).start()
+    thread = threading.Thread(target=work, name="nodegraph-preload", daemon=True)
+    _PRELOADS[:] = [t for t in _PRELOADS if t.is_alive()] + [thread]
+    thread.start()
 
 
 def _written_files(values: Mapping[str, PortType]) -> Files | None:
