@@ -33,7 +33,7 @@ from .progress import Reporter, progress_mode, warnings_as_events
 from .plan_names import TaskName
 from .schedule import Plan, check_run_frames, plan_run
 from .staging import commit, discard, new_token
-from .tasks import IN_PROCESS, OK_STATUSES, TaskResult, TaskSpec, combine, preload
+from .tasks import IN_PROCESS, OK_STATUSES, TaskResult, TaskSpec, combine, preload, wait_for_preloads
 
 __all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "check_scheduler", "SCHEDULERS",
            "CONNECT_TIMEOUT_S"]
@@ -159,7 +159,10 @@ def run(graph: Graph | str | os.PathLike, *, frames: range | None = None, chunk:
     mode = progress_mode(progress)
     started = time.perf_counter()
     with warnings_as_events(mode):
-        return _run(graph, frames, chunk, scheduler, store, outputs, force, mode, workers, device, started)
+        try:
+            return _run(graph, frames, chunk, scheduler, store, outputs, force, mode, workers, device, started)
+        finally:
+            wait_for_preloads()  # an import left running would abort the interpreter's exit
 
 
 def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: Cache | None,

@@ -13,7 +13,6 @@ writes happen in a background thread.
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import dataclasses
 import multiprocessing
@@ -295,29 +294,31 @@ class _BackgroundStores:
 _STORES = _BackgroundStores()
 
 
-PRELOAD_EXIT_WAIT_S = 120.0
-"""At exit, how long to wait for a preload still importing (`preload`)."""
+PRELOAD_WAIT_S = 120.0
+"""How long a run waits at its end for a preload still importing (`wait_for_preloads`)."""
 
 _PRELOADS: list[threading.Thread] = []
 
 
-def _join_preloads() -> None:
-    """Let a preload finish its import before the interpreter exits: a run that fails within
-    seconds (stabilize.json with init_group=nosuch, under load) exited while the daemon thread
-    was inside torch's import, and the process aborted ("terminate called without an active
-    exception", exit -6) after printing its exit-2 error."""
+def wait_for_preloads(timeout: float = PRELOAD_WAIT_S) -> None:
+    """Wait for the preload threads still importing (`nodegraph.runner.run` calls it as it ends).
+
+    A run that failed within seconds returned, and the `nodegraph` command exited, while the
+    daemon preload thread was most likely still inside an import (torch, numba's kernels): the
+    process aborted after printing its exit-2 error ("terminate called without an active
+    exception", exit -6; once in 419 probes of bench/probe_bad_inputs.py, stabilize.json with
+    init_group=nosuch beside a CI run). Waiting at interpreter exit instead (atexit) let the
+    import finish after torch's own exit hooks had run, and torch printed ignored exceptions.
+    """
     for thread in _PRELOADS:
-        thread.join(PRELOAD_EXIT_WAIT_S)
-
-
-atexit.register(_join_preloads)
+        thread.join(timeout)
 
 
 def preload(modules: Sequence[str]) -> None:
     """Import slow modules that planned nodes will import (`Node.preload`) in a background
     thread, so the import overlaps upstream work instead of delaying the node. An import
-    that fails here is left for the node itself to report. The interpreter waits for the
-    thread at exit (`_join_preloads`)."""
+    that fails here is left for the node itself to report. The run waits for the thread as it
+    ends (`wait_for_preloads`)."""
     missing = [m for m in dict.fromkeys(modules) if m not in sys.modules]
     if not missing:
         return

@@ -134,18 +134,21 @@ def test_finite_check_by_sum_still_finds_every_bad_value():
             MeshSequence(vertices, faces).validate()
 
 
-def test_the_interpreter_waits_for_a_preload_still_importing(tmp_path):
-    # a run that fails within seconds exited while the preload thread was importing (exit -6,
-    # "terminate called without an active exception"): the import must finish before the exit
-    import subprocess
-    from pathlib import Path
+def test_a_run_waits_for_a_preload_still_importing(tmp_path, monkeypatch):
+    # a run that fails within seconds returned, and the command exited, while the preload thread
+    # was importing (exit -6, "terminate called without an active exception"): run() waits for it
+    from nodegraph import runner, tasks
 
     marker = tmp_path / "imported"
     (tmp_path / "slow_module_for_preload.py").write_text(
         f"import time\ntime.sleep(1.0)\nopen({str(marker)!r}, 'w').write('done')\n")
-    code = (f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from nodegraph.tasks import preload; "
-            "preload(['slow_module_for_preload'])")
-    root = str(Path(__file__).resolve().parents[2])
-    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=60)
-    assert done.returncode == 0, done.stderr
+    monkeypatch.syspath_prepend(str(tmp_path))
+    real_run = runner._run
+
+    def run_with_a_slow_preload(*args, **kwargs):
+        tasks.preload(["slow_module_for_preload"])
+        return real_run(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "_run", run_with_a_slow_preload)
+    run(_fan_out(8), chunk=8, scheduler="sync", cache=False)
     assert marker.read_text() == "done"
