@@ -351,7 +351,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
     crop, crop_roll = None, 0.0  # the next frame's crop (None: detect)
     latest, before = None, None  # the landmark crops (box, roll) of the last two frames read (None: none)
     last_box, lost_for = None, 0  # the followed face's detector-sized box when last seen
-    weak: list[tuple[np.ndarray, float, np.ndarray, float]] = []  # this frame's best read under the bar
+    weak: list[tuple[torch.Tensor, float, np.ndarray, float]] = []  # this frame's best read not taken
 
     def read(image: torch.Tensor, box: np.ndarray, roll: float) -> tuple[np.ndarray, float]:
         points, presence = face_landmarks(image, box[None], mesh, np.array([roll]))
@@ -383,7 +383,7 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                     break
             out.presence[f] = max(float(pres[0]), out.presence[f])
             if not weak or float(pres[0]) > weak[0][1]:  # kept if the frame fails for this read (reason 2 or 4)
-                weak[:] = [(pts[0].double().cpu().numpy(), float(pres[0]), box, first_roll + extra)]
+                weak[:] = [(pts[0], float(pres[0]), box, first_roll + extra)]  # converted if used
             if float(pres[0]) >= least_presence:  # read again in the crop of its own points: agree?
                 first = pts[0].double().cpu().numpy()
                 roll = float(points_roll(first))
@@ -452,7 +452,8 @@ def track_faces(frames: np.ndarray, *, device: str = "cpu", face: FaceChoice = "
                 if found is None:
                     out.reasons[f] = reason
                     if weak_reads and reason in (2, 4) and weak:
-                        out.points[f], out.presence[f], out.boxes[f], out.rolls[f] = weak[0]
+                        points, out.presence[f], out.boxes[f], out.rolls[f] = weak[0]
+                        out.points[f] = points.double().cpu().numpy()
                     crop, latest, before, lost_for = None, None, None, lost_for + 1
                     if last_box is not None and lost_for >= refind_frames:
                         last_box = None  # give up on the lost face: the choice is made afresh
