@@ -425,7 +425,8 @@ class FitReport(Node):
     confidence is 0, a failed frame's weak read) and the fitted head's (red, `read_fitted_landmarks`)."""
 
     type_name = "fit.FitReport"
-    version = 3  # 3: plate points of confidence 0 (landmarks.TrackFaces 8's weak reads) drawn grey
+    version = 4  # 4: optional `fitted_landmarks` (fit.FittedLandmarks: not read a second time);
+    # 3: plate points of confidence 0 (landmarks.TrackFaces 8's weak reads) drawn grey
     kind = FRAMEWISE
     writes_files = True
     resources = {"gpu": 1}
@@ -443,11 +444,13 @@ class FitReport(Node):
     appearance = In(JsonValue, optional=True, doc="Albedo and lighting.")
     fitted = In(ParamSequence, doc="From fit.Expression.")
     flags = In(ParamSequence, doc="From fit.FlagFailures.")
+    fitted_landmarks = In(Landmarks2D, optional=True, doc="(F, 68, 2) the fitted head's points from "
+                          "fit.FittedLandmarks (the same fit and flags): drawn, not read again on a render.")
     files = Out(Files, doc="The PNGs written by this chunk.")
 
     def run(self, images: ImageSequence, landmarks: Landmarks2D, boxes: ParamSequence, camera: Camera,
             model: FaceModel, fitted: ParamSequence, flags: ParamSequence,
-            appearance: JsonValue | None = None) -> dict[str, Files]:
+            appearance: JsonValue | None = None, fitted_landmarks: Landmarks2D | None = None) -> dict[str, Files]:
         import torch
 
         from ..io.image import write_image
@@ -459,9 +462,15 @@ class FitReport(Node):
         plate = network_images(images)
         k = len(model.expression_names)
         failed = flags_to_mask(flags, len(self.frames), where="flags")
-        drawn_frames = np.array([frame % self.params.every == 0 for frame in self.frames])
-        read = read_fitted_landmarks(fm, landmarks, boxes, camera, fitted.values.astype(np.float64),
-                                     load_face_mesh(self.device), self.device, drawn_frames & ~failed)
+        if fitted_landmarks is not None:
+            if fitted_landmarks.points.shape != (len(self.frames), 68, 2):
+                raise InputError("fitted_landmarks", f"expected ({len(self.frames)}, 68, 2) points "
+                                 f"(fit.FittedLandmarks), found {fitted_landmarks.points.shape}")
+            read = fitted_landmarks.points
+        else:
+            drawn_frames = np.array([frame % self.params.every == 0 for frame in self.frames])
+            read = read_fitted_landmarks(fm, landmarks, boxes, camera, fitted.values.astype(np.float64),
+                                         load_face_mesh(self.device), self.device, drawn_frames & ~failed)
         written = []
         folder = Path(self.params.folder)
         for i, frame in enumerate(self.frames):

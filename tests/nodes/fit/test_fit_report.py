@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from nodegraph import Camera, ImageSequence, Landmarks2D, ParamSequence, run_node  # noqa: E402
-from nodes.fit import FitReport  # noqa: E402
+from nodes.fit import FitReport, FittedLandmarks  # noqa: E402
 from nodes.fit.output_nodes import projected_landmarks68  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
 from nodes.io.image import read_image  # noqa: E402
@@ -18,7 +18,8 @@ SIZE = 512
 FACING = np.diag([1.0, -1.0, -1.0])  # the model (y up, z out of the face) facing a camera looking down +z
 
 
-def _report(tmp_path, blend: float, failed: float = 0.0, confidence: float = 1.0) -> np.ndarray:
+def _report(tmp_path, blend: float, failed: float = 0.0, confidence: float = 1.0,
+            read_by_node: bool = False, shift: float = 0.0) -> np.ndarray:
     model = load_face_model()
     camera = Camera.from_fov(SIZE, SIZE, 30.0)
     k = len(model.expression_names)
@@ -28,13 +29,16 @@ def _report(tmp_path, blend: float, failed: float = 0.0, confidence: float = 1.0
     half, centre = 0.65 * (hi - lo).max(), (lo + hi) / 2
     box = np.concatenate([centre - half, centre + half])[None].astype(np.float32)
     plate = np.full((1, SIZE, SIZE, 3), 0.3, np.float32)
-    folder = tmp_path / f"blend{blend}_{failed}_{confidence}"
-    run_node(FitReport, {"folder": str(folder), "blend": blend},
-             images=ImageSequence(plate, colour_space="srgb"),
-             landmarks=Landmarks2D(marks, np.full((1, 68), confidence, np.float32)),
-             boxes=ParamSequence(box, ["x0", "y0", "x1", "y1"]), camera=camera, model=model,
-             fitted=ParamSequence(fitted, [f"v{i}" for i in range(fitted.shape[1])]),
-             flags=ParamSequence(np.array([[failed]], np.float32), ["failed"]))
+    folder = tmp_path / f"blend{blend}_{failed}_{confidence}_{read_by_node}_{shift}"
+    inputs = dict(landmarks=Landmarks2D(marks, np.full((1, 68), confidence, np.float32)),
+                  boxes=ParamSequence(box, ["x0", "y0", "x1", "y1"]), camera=camera, model=model,
+                  fitted=ParamSequence(fitted, [f"v{i}" for i in range(fitted.shape[1])]),
+                  flags=ParamSequence(np.array([[failed]], np.float32), ["failed"]))
+    if read_by_node:  # the fitted head's points from fit.FittedLandmarks, as the fit graphs wire them
+        read = run_node(FittedLandmarks, **inputs)["landmarks68"]
+        inputs["fitted_landmarks"] = Landmarks2D(read.points + np.float32(shift), read.confidence)
+    run_node(FitReport, {"folder": str(folder), "blend": blend}, images=ImageSequence(plate, colour_space="srgb"),
+             **inputs)
     pixels, _ = read_image(folder / "fit.0000.png")
     return pixels[..., :3], box[0], marks[0]
 
@@ -67,3 +71,14 @@ def test_a_failed_frames_weak_read_is_drawn_grey(tmp_path):
     x, y = np.round(marks[30]).astype(int)  # the nose tip's dot
     assert read[y, x, 1] > 0.9 and read[y, x, 0] < 0.1, read[y, x]
     assert np.allclose(weak[y, x], 0.6, atol=0.01), weak[y, x]
+
+
+def test_the_points_of_fit_fitted_landmarks_are_drawn_as_the_report_reads_them(tmp_path):
+    read_here, _, _ = _report(tmp_path, 0.5)
+    given, _, _ = _report(tmp_path, 0.5, read_by_node=True)
+    assert np.array_equal(read_here, given)
+    failed_here, _, _ = _report(tmp_path, 0.5, failed=1.0)
+    failed_given, _, _ = _report(tmp_path, 0.5, failed=1.0, read_by_node=True)
+    assert np.array_equal(failed_here, failed_given)
+    moved, _, _ = _report(tmp_path, 0.5, read_by_node=True, shift=30.0)  # the given points are the ones drawn
+    assert not np.array_equal(read_here, moved)
