@@ -65,28 +65,45 @@ def _identity_step(model: FitModel, identity_deltas: Tensor, views: FitViews, an
     def photo_term(weights0: Tensor) -> PhotoTerm:
         return PhotoTerm.about(photo, views, photo_weight, weights0, shapes, p_basis, cache=photo_cache)
 
+    shaped: dict = {}  # the anchors' neutral with the last identity (residuals, then the Jacobian at it)
+
+    def neutral_at(ident: Tensor) -> Tensor:
+        """(B, C, L, 3) the anchors' neutral plus identity (I,)'s shape, cm."""
+        if "ident" not in shaped or not torch.equal(shaped["ident"], ident):
+            shaped["ident"], shaped["neutral"] = ident.clone(), neutral + torch.einsum("i,bclid->bcld", ident, id_d)
+        return shaped["neutral"]
+
     def landmark_fn(rot0: Tensor, weights0: Tensor, ident: Tensor) -> Callable[[Tensor], Tensor]:
-        shape = torch.einsum("i,bclid->bcld", ident, id_d)
-        return _stage_residuals(neutral + shape, deltas, views, anchors, rot0, weights0, shapes, w_lm, prior=prior,
+        return _stage_residuals(neutral_at(ident), deltas, views, anchors, rot0, weights0, shapes, w_lm, prior=prior,
                                 edge_weight=edge_weight, rigid_prior=None, rigid_prior_weight=0.0)
+
+    held: dict = {}
+
+    def linear_unknowns(x: Tensor, ident: Tensor) -> Tensor:
+        """(B, S + I) the photometric term's linear unknowns: the active weights, then the identity;
+        the same tensor while its values are (`PhotoTerm` then sums its basis once for the residuals
+        at a step and the Jacobian after it)."""
+        lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
+        if "lin" not in held or not torch.equal(held["lin"], lin):
+            held["lin"] = lin
+        return held["lin"]
 
     def residuals(rot0: Tensor, weights0: Tensor, x: Tensor, ident: Tensor) -> Tensor:
         """(B, M) residuals of the frames (without the identity prior) at x (B, P), ident (I,)."""
         r = landmark_fn(rot0, weights0, ident)(x)
         if not use_photo:
             return r
-        lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
+        lin = linear_unknowns(x, ident)
         return torch.cat([r, photo_term(weights0).residuals(x[:, :3], rot0, x[:, 3:6], lin)], 1)
 
     def jacobians(rot0: Tensor, weights0: Tensor, x: Tensor, ident: Tensor) -> tuple[Tensor, Tensor]:
         """(B, M, P) in the frames' unknowns and (B, M, I) in the identity, at omega = 0."""
-        shape = torch.einsum("i,bclid->bcld", ident, id_d)
-        jac = _stage_jacobian(neutral + shape, deltas, views, rot0, weights0, shapes, w_lm, x, prior=prior,
+        jac = _stage_jacobian(neutral_at(ident), deltas, views, rot0, weights0, shapes, w_lm, x, prior=prior,
                               edge_weight=edge_weight, rigid_prior=None, rigid_prior_weight=0.0, extra=id_d)
         jx, ji = jac[:, :, :n_p], jac[:, :, n_p:]
         if not use_photo:
             return jx, ji
-        lin = torch.cat([x[:, 6:], ident.expand(b, n_i)], 1)
+        lin = linear_unknowns(x, ident)
         _, jp = photo_term(weights0).jacobian(rot0, x[:, 3:6], lin)
         return torch.cat([jx, jp[:, :, :n_p]], 1), torch.cat([ji, jp[:, :, n_p:]], 1)
 

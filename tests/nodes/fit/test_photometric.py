@@ -80,3 +80,52 @@ def test_photo_term_jacobian_matches_forward_autodiff(distortion):
     torch.testing.assert_close(r, fn(x0))
     assert float(ref.abs().max()) > 1.0  # the samples do move on the plate
     torch.testing.assert_close(jac, ref, atol=1e-3, rtol=1e-3)
+
+
+def _broadcast_jacobian(term: PhotoTerm, rot: torch.Tensor, trans: torch.Tensor, active: torch.Tensor,
+                        pose: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """PhotoTerm.jacobian as it was written before `_chain_basis` (whole-batch broadcasts, concatenated)."""
+    from nodes.fit.photometric import photometric_point_jacobian
+
+    local = term.local0 + torch.einsum("bcnds,bs->bcnd", term.basis, active) if active.shape[1] else term.local0
+    q = local @ rot[:, None].transpose(-1, -2)
+    r, jp = photometric_point_jacobian(term.samples, q + trans[:, None, None, :], term.views, term.weight)
+    cols = [torch.linalg.cross(q[..., None, :].expand_as(jp), jp, dim=-1), jp] if pose else []
+    if term.basis.shape[-1]:
+        jr = torch.einsum("bcnij,bjk->bcnik", jp, rot)
+        basis = term.basis
+        cols.append(jr[..., 0, None] * basis[..., None, 0, :] + jr[..., 1, None] * basis[..., None, 1, :]
+                    + jr[..., 2, None] * basis[..., None, 2, :])
+    jac = torch.cat(cols, -1) if len(cols) > 1 else cols[0] if cols else jp[..., :0]
+    return r.reshape(r.shape[0], -1), jac.reshape(r.shape[0], -1, jac.shape[-1])
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_photo_term_jacobian_has_the_bits_of_the_broadcast_products(dtype):
+    """`_chain_basis` (chunks of CHAIN_CHUNK samples, written in place) makes the same products and
+    sums in the same order as whole-batch broadcasts: equal to the bit, over chunk boundaries, with
+    and without the pose columns, and the kept `_local` answers as a fresh one."""
+    from nodes.fit.photometric import CHAIN_CHUNK
+    from nodes.fit.solve import in_dtype
+
+    for n, s in ((2 * CHAIN_CHUNK + 3, 5), (7, 5), (CHAIN_CHUNK, 0)):
+        term, rot0 = _term(n=n, s=s)
+        term = PhotoTerm(*in_dtype((term.samples, term.views), dtype), term.weight, term.local0.to(dtype),
+                         term.basis.to(dtype))
+        rot0 = rot0.to(dtype)
+        trans = torch.tensor([[0.5, -0.3, 60.0], [-1.0, 0.2, 65.0]], dtype=dtype)
+        for active in (torch.full((2, s), 0.2, dtype=dtype), torch.full((2, s), -0.1, dtype=dtype),
+                       torch.full((2, s), 0.2, dtype=dtype)):
+            for pose in (True, False):
+                r, jac = term.jacobian(rot0, trans, active, pose=pose)
+                if not pose and not s:  # no columns (the broadcast version failed to reshape them)
+                    assert jac.shape == (2, r.shape[1], 0)
+                    continue
+                r_ref, jac_ref = _broadcast_jacobian(term, rot0, trans, active, pose=pose)
+                assert jac.dtype == jac_ref.dtype and jac.shape == jac_ref.shape
+                assert torch.equal(r, r_ref) and torch.equal(jac, jac_ref)
+            fresh = PhotoTerm(term.samples, term.views, term.weight, term.local0, term.basis)
+            assert torch.equal(term.residuals(torch.zeros(2, 3, dtype=dtype), rot0, trans, active),
+                               fresh.residuals(torch.zeros(2, 3, dtype=dtype), rot0, trans, active))
+            active += 0.05  # changed in place: the kept points are not reused
+            assert torch.equal(term.jacobian(rot0, trans, active)[1], _broadcast_jacobian(term, rot0, trans, active)[1])
