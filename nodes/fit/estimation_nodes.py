@@ -75,6 +75,16 @@ class PlateCamera(Node):
         return {"camera": cam}
 
 
+def _appearance_arrays(albedo: np.ndarray, sh: np.ndarray, background: np.ndarray, hidden: np.ndarray,
+                       noise: float) -> dict[str, Any]:
+    """`appearance_json`'s value with its albedo and sh as the float64 arrays its lists hold (rounded
+    the same way): `_fit_model` reads the same float32 values from either, without the lists (a
+    pass of fit.EstimateAppearance made its (V, 3) list and read it back, 0.1 s, for the next pass only)."""
+    return {"albedo": np.round(np.asarray(albedo, np.float64), 5), "sh": np.round(np.asarray(sh, np.float64), 6),
+            "background": [float(c) for c in background], "hidden_faces": [int(i) for i in hidden],
+            "noise": float(noise)}
+
+
 class EstimateAppearance(Node):
     """Albedo and SH lighting from a near-neutral frame after a rigid alignment (or the default appearance)."""
 
@@ -213,9 +223,11 @@ class EstimateAppearance(Node):
                 albedo = estimate_appearance(plates[:paint_count], verts[:paint_count], fm.faces,
                                              camera.world_to_camera, intrinsics, albedo0, distortion=dist,
                                              prior_weight=p.prior_weight, smooth_steps=smooth, sh=app.sh).albedo
-            value = appearance_json(albedo, app.sh, tuple(app.background), hidden)
-            value["noise"] = noise
-            fm = _fit_model(model, JsonValue(value), self.device)
+            if n < p.passes - 1:  # the next pass renders with it: the values the JSON holds, as arrays
+                fm = _fit_model(model, JsonValue(_appearance_arrays(albedo, app.sh, app.background, hidden, noise)),
+                                self.device)
+        value = appearance_json(albedo, app.sh, tuple(app.background), hidden)
+        value["noise"] = noise
         value["frame"] = int(frame + self.frames.start)
         painted = pick[:0] if unpainted else pick[:paint_count] if lit_first else pick
         value["frames"] = [int(f + self.frames.start) for f in painted]

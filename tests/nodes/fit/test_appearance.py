@@ -159,3 +159,27 @@ def test_linear_plates_of_some_frames_are_those_of_the_whole_shot():
     assert np.allclose(_linear_rgb(seq, np.array([3, 1])), full[[3, 1]])
     grey = ImageSequence(rng.uniform(0, 1, (2, 4, 4, 1)).astype(np.float32), channels=["Y"], colour_space="srgb")
     assert _linear_rgb(grey, 1).shape == (4, 4, 3) and _linear_rgb(grey).shape == (2, 4, 4, 3)
+
+
+def test_the_passes_model_reads_what_the_appearance_json_holds():
+    """fit.EstimateAppearance hands a pass's appearance to the next as arrays, not as its JSON lists:
+    the FitModel built from them is the one built from `appearance_json`'s value."""
+    import torch
+
+    from nodes.fit.estimation_nodes import _appearance_arrays
+    from nodes.fit.node_inputs import _fit_model
+    from nodes.render.appearance import appearance_json
+
+    model = load_face_model()
+    rng = np.random.default_rng(3)
+    albedo = rng.uniform(-0.1, 1.1, (model.neutral.shape[0], 3)).astype(np.float32)
+    albedo[:3] = [[0.123455, 0.5, 1e-7], [0.999995, -0.0, 0.3333333], [0.2500049, 0.75, 0.1]]  # rounding's edges
+    sh = rng.normal(0, 0.5, (9, 3)).astype(np.float32)
+    background, hidden = np.array([0.2, 0.25, 0.3], np.float32), np.array([0, 5, 7])
+    value = appearance_json(albedo, sh, tuple(background), hidden)
+    value["noise"] = 0.0125
+    a = _fit_model(model, JsonValue(value), "cpu")
+    b = _fit_model(model, JsonValue(_appearance_arrays(albedo, sh, background, hidden, 0.0125)), "cpu")
+    for name in ("albedo", "sh", "background", "faces", "neutral"):
+        assert torch.equal(torch.as_tensor(getattr(a, name)), torch.as_tensor(getattr(b, name))), name
+    assert a.noise == b.noise
