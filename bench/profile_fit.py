@@ -5,7 +5,11 @@ fit.EstimateAppearance), then RigidPose and Expression with their parts timed: e
 the parts below is wrapped (wall and process CPU seconds, calls, and the frames those calls
 covered), so the numbers are exclusive of nothing: `fit_stages` contains all the others.
 
-Usage: nice python bench/profile_fit.py [--frames 8] [--seed 0] [--cprofile 25]
+With --identity: bench/fit.py's "identity + appearance (once, per shot)" chain instead (fit.EstimateIdentity
+with the default appearance, then twice fit.EstimateAppearance and fit.EstimateIdentity with the plates),
+one table per node; --save then writes the identities and appearances (JSON) to compare two versions.
+
+Usage: nice python bench/profile_fit.py [--frames 8] [--seed 0] [--cprofile 25] [--identity] [--save out.npz]
 Prints, per node: seconds per frame, then one row per part (total seconds, calls, per call
 ms, and per frame: how many times each frame went through it, e.g. renders per frame; the
 calls cover all the frames of a batch at once). Times are of this machine as loaded now: report `uptime` beside them.
@@ -15,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import json
 import pstats
 import sys
 import tempfile
@@ -88,6 +93,15 @@ def instrument() -> None:
     _wrap(photometric.PhotoTerm, "jacobian", "photometric Jacobian (PhotoTerm.jacobian)")
     _wrap(photometric.PhotoTerm, "about", "photometric term setup (PhotoTerm.about)")
     _wrap(photometric.PhotoTerm, "residuals", "photometric residuals")
+    from nodes.fit import appearance, identity
+
+    _wrap(identity, "solve_identity", "solve_identity (all)")
+    _wrap(identity, "_identity_step", "_identity_step (one round, all LM)")
+    _wrap(identity, "levenberg_marquardt", "levenberg_marquardt (identity)", iterations=True)
+    _wrap(identity, "_render_anchors", "render + read + anchor (identity)")
+    _wrap(identity, "_stage_jacobian", "landmark Jacobian (identity)")
+    _wrap(appearance, "render_mesh", "render_mesh (appearance, plate size)")
+    _wrap(appearance, "_pool", "albedo pooling (_pool)")
 
 
 def table(title: str, frames: int, seconds: float, cpu: float) -> None:
@@ -97,11 +111,53 @@ def table(title: str, frames: int, seconds: float, cpu: float) -> None:
         if name.endswith(": iterations"):
             continue
         extra = ""
-        if name == "levenberg_marquardt":
+        if name.startswith("levenberg_marquardt"):
             its = TOTALS[name + ": iterations"][2]
             extra = f"  ({its} LM iterations, {its / max(n, 1):.1f} per solve, {1e3 * w / max(its, 1):.1f} ms each)"
         print(f"  {name:44s} {w:8.3f} {c:8.3f} {n:6d} {1e3 * w / max(n, 1):8.1f} {covered / frames:9.2f}{extra}")
     TOTALS.clear()
+
+
+def identity_chain(args: argparse.Namespace, model: Any, cam: Camera, seq: ImageSequence, det: dict) -> None:
+    """bench/fit.py's "identity + appearance (once, per shot)": one table per node call; with
+    --save, the identities and appearances (to compare two versions of the code)."""
+    out = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])
+    marks, marks468 = out["landmarks68"], out["landmarks468"]
+    f = args.frames
+    views = dict(landmarks=[marks468], boxes=[det["boxes"]], cameras=[cam])
+    app_in = dict(images=seq, landmarks=marks, boxes=det["boxes"], camera=cam)
+    instrument()
+    prof = cProfile.Profile() if args.cprofile else None
+    saved: dict[str, Any] = {}
+    total = time.perf_counter()
+
+    def run(title: str, call: Callable[[], Any]) -> Any:
+        w, c = time.perf_counter(), time.process_time()
+        if prof:
+            prof.enable()
+        result = call()
+        if prof:
+            prof.disable()
+        table(title, 1, time.perf_counter() - w, time.process_time() - c)
+        if prof:
+            pstats.Stats(prof).sort_stats("tottime").print_stats(args.cprofile)
+            prof.clear()
+        return result
+
+    ident = run("fit.EstimateIdentity (first)", lambda: run_node(EstimateIdentity, {"frames_used": 4},
+                                                                 frames=range(f), model=model, **views))
+    saved["identity0"] = np.asarray(ident["identity"].value["identity"])
+    for n in range(2):
+        app = run(f"fit.EstimateAppearance ({n + 1})", lambda: run_node(EstimateAppearance, model=ident["fitted_model"],
+                                                                       **app_in))
+        saved[f"appearance{n + 1}"] = json.dumps(app["appearance"].value, sort_keys=True)
+        ident = run(f"fit.EstimateIdentity ({n + 2})", lambda: run_node(
+            EstimateIdentity, {"frames_used": 4}, frames=range(f), model=model, images=[seq],
+            appearance=app["appearance"], **views))
+        saved[f"identity{n + 1}"] = np.asarray(ident["identity"].value["identity"])
+    print(f"identity + appearance (once, per shot): {time.perf_counter() - total:.2f} s")
+    if args.save:
+        np.savez(args.save, **saved)
 
 
 def main() -> None:
@@ -110,6 +166,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cprofile", type=int, default=0, help="also print cProfile's top N functions by own time")
+    ap.add_argument("--identity", action="store_true", help="profile bench/fit.py's identity + appearance chain "
+                    "(EstimateIdentity, then twice EstimateAppearance and EstimateIdentity with the plates) instead of "
+                    "RigidPose and Expression")
     ap.add_argument("--save", default="", help="NPZ of the outputs (rigid pose, expression fitted, energies), to "
                     "compare two versions of the code")
     args = ap.parse_args()
@@ -120,6 +179,9 @@ def main() -> None:
     seq = ImageSequence(plates, colour_space="linear")
     det = run_node(DetectFaces, images=seq)
     marks = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])["landmarks68"]
+    if args.identity:
+        identity_chain(args, model, cam, seq, det)
+        return
     tmp = tempfile.mkdtemp()
     np.savez(f"{tmp}/identity.npz", identity=truth["identity"])
     f = args.frames
