@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.image import crop_to_image
-from ..geometry.lm import LMSchedule, levenberg_marquardt
+from ..geometry.lm import LMSchedule, levenberg_marquardt, normal_products
 from ..geometry.rotation import rotmat_to_quat_torch
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from .energy import (EDGES_68, IRIS_CORNERS_68, _skew, axis_angle_to_rotmat, eye_look_shapes, iris_points,
@@ -585,8 +585,7 @@ def solve_stage(stage: Stage, model: FitModel, views: FitViews, anchors: Anchors
         def normal(x: Tensor, r: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
             jtj, jtr, row = None, None, 0
             for jac in linearized(rows)[1](x):  # (R, M_i, P) row blocks: summed without concatenating
-                jt = jac.transpose(1, 2)
-                part, part_r = jt @ jac, (jt @ r[:, row:row + jac.shape[1], None])[..., 0]
+                part, part_r = normal_products(jac, r[:, row:row + jac.shape[1]])
                 jtj, jtr = (part, part_r) if jtj is None else (jtj + part, jtr + part_r)
                 row += jac.shape[1]
             return jtj, jtr

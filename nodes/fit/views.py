@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import project_points_torch
-from ..geometry.image import crop_intrinsics, crop_to_image, image_to_crop, sample_bilinear
+from ..geometry.image import crop_intrinsics, crop_to_image, image_to_crop, sample_bilinear, sample_separable
 from ..landmarks.correspondence import MEDIAPIPE_TO_68
 from ..landmarks.network import MESH_SIZE, srgb_encode
 from ..geometry.mesh import triangle_adjacency
@@ -77,10 +77,14 @@ class FitModel:
                    np.asarray(landmarks, np.int64), t(albedo)[None], t(sh)[None], t(background), float(noise))
 
     def vertices(self, weights: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
-        """(B, K) weights, (B, 3, 3), (B, 3) cm -> (B, V, 3) world vertices, cm."""
+        """(B, K) weights, (B, 3, 3), (B, 3) cm -> (B, V, 3) world vertices, cm.
+
+        Frame by frame: a (B, K) x (K, 3V) product blocks its sums by B, so a frame's vertices
+        (and from them its render and fit) depended on the frames solved beside it."""
         k, v = self.deltas.shape[:2]
-        local = self.neutral.reshape(-1) + weights @ self.deltas.reshape(k, -1)
-        return local.reshape(-1, v, 3) @ rot.transpose(1, 2) + trans[:, None]
+        basis = self.deltas.reshape(k, -1)
+        flat = self.neutral.reshape(-1)
+        return torch.stack([(flat + w @ basis).reshape(v, 3) @ r.T + t for w, r, t in zip(weights, rot, trans)])
 
 
 @dataclass
@@ -298,8 +302,7 @@ def render_crops(model: FitModel, views: FitViews, vertices: Tensor, *, size: in
         image = (image + (model.noise / k)[:, None, None, None] * pattern).clamp(0.0, 1.0)
     image = image * (in_y[:, :, None] & in_x[:, None, :]).to(image.dtype)[..., None]
     xs, ys = coords[..., 0], coords[..., 1]  # (N, S) render-pixel coordinates of the crop's samples
-    crop = sample_bilinear(image, torch.stack(torch.broadcast_tensors(xs[:, None, :], ys[:, :, None]), -1),
-                           padding="zeros", method="grid_sample")
+    crop = sample_separable(image, xs, ys)  # the same values for any R (the batch's largest box)
     ix = xs.round().long().clamp(0, r - 1)
     iy = ys.round().long().clamp(0, r - 1)
     rows = torch.arange(n, device=k.device)[:, None, None]

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["Padding", "Method", "sample_bilinear", "resize_bilinear", "box_downsample", "separable_filter", "gaussian_kernel",
+__all__ = ["Padding", "Method", "sample_bilinear", "sample_separable", "resize_bilinear", "box_downsample", "separable_filter", "gaussian_kernel",
            "gaussian_blur", "pyramid_down", "crop_and_resize", "crop_to_image", "image_to_crop", "crop_intrinsics"]
 
 Padding = Literal["border", "zeros"]
@@ -148,6 +148,47 @@ def _sample_grid(images: Tensor, xy: Tensor, padding: Padding) -> Tensor:
     return out.permute(0, 2, 3, 1).reshape(*xy.shape[:-1], c)
 
 
+def sample_separable(images: Tensor, xs: Tensor, ys: Tensor) -> Tensor:
+    """Bilinear samples on a separable grid: output pixel (i, j) of image n is the image at
+    (`xs[n, j]`, `ys[n, i]`), pixel coordinates (centres at integers); pixels outside the image
+    are 0 ("zeros" padding of `sample_bilinear`). Interpolates along y, then along x.
+
+    Each sample depends only on its coordinates and the pixels around them, not on the image's
+    size (`grid_sample` normalizes coordinates by the size, which rounds differently for each
+    size: a fit's renders, whose side is the largest box of the batch, differed by 1.7e-6
+    between batches). Differentiable in the pixels (not in xs, ys).
+
+    Args:
+        images: (N, H, W, C) float.
+        xs: (N, S_x) x coordinates of the output columns; ys: (N, S_y) y of the output rows.
+    Returns:
+        (N, S_y, S_x, C).
+    """
+    _check_images(images)
+    n, h, w, c = images.shape
+    if xs.ndim != 2 or ys.ndim != 2 or xs.shape[0] != n or ys.shape[0] != n:
+        raise ValueError(f"xs, ys: expected shapes ({n}, S_x) and ({n}, S_y), found {tuple(xs.shape)} and "
+                         f"{tuple(ys.shape)}")
+
+    def taps(t: Tensor, size: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        lo = torch.floor(t)
+        frac = (t - lo).to(images.dtype)
+        i0 = lo.long()
+        w0 = torch.where((i0 >= 0) & (i0 < size), 1 - frac, torch.zeros_like(frac))
+        w1 = torch.where((i0 + 1 >= 0) & (i0 + 1 < size), frac, torch.zeros_like(frac))
+        return i0.clamp(0, size - 1), (i0 + 1).clamp(0, size - 1), w0, w1
+
+    y0, y1, wy0, wy1 = taps(ys, h)
+    x0, x1, wx0, wx1 = taps(xs, w)
+    rows = torch.arange(n, device=images.device)[:, None]
+    along_y = images[rows, y0] * wy0[..., None, None] + images[rows, y1] * wy1[..., None, None]  # (N, S_y, W, C)
+    cols = rows[:, :, None]
+    return (along_y[cols, torch.arange(ys.shape[1], device=images.device)[None, :, None], x0[:, None, :]]
+            * wx0[:, None, :, None]
+            + along_y[cols, torch.arange(ys.shape[1], device=images.device)[None, :, None], x1[:, None, :]]
+            * wx1[:, None, :, None])
+
+
 def resize_bilinear(images: Tensor, size: tuple[int, int], *, antialias: bool = False) -> Tensor:
     """Resize images to (H', W') bilinearly, pixel-centre aligned (torch's `interpolate`).
 
@@ -212,12 +253,20 @@ def separable_filter(images: Tensor, kernel: Tensor) -> Tensor:
         raise ValueError(f"kernel: expected shape (K,) with K odd, found {tuple(kernel.shape)}")
     radius = kernel.shape[0] // 2
     n, h, w, c = images.shape
-    kernel = kernel.to(images)
+    taps = kernel.detach().cpu().tolist()
     t = images.permute(0, 3, 1, 2).reshape(n * c, 1, h, w)
-    t = F.pad(t, (radius, radius, radius, radius), mode="replicate")
-    t = F.conv2d(t, kernel.reshape(1, 1, 1, -1))
-    t = F.conv2d(t, kernel.reshape(1, 1, -1, 1))
-    return t.reshape(n, c, h, w).permute(0, 2, 3, 1)
+    t = F.pad(t, (radius, radius, radius, radius), mode="replicate")[:, 0]
+    # weighted sums of shifted views: each pixel's sum runs over its own taps in a fixed order,
+    # so an image's result does not depend on the batch it came in (a convolution's did), and
+    # on one thread it is ~10x faster than `conv2d` with a 1-channel kernel (8 crops of 192^2:
+    # 6.8 against 73 ms)
+    along_x = taps[0] * t[:, :, :w]
+    for i in range(1, len(taps)):
+        along_x = along_x + taps[i] * t[:, :, i:i + w]
+    out = taps[0] * along_x[:, :h]
+    for i in range(1, len(taps)):
+        out = out + taps[i] * along_x[:, i:i + h]
+    return out.reshape(n, c, h, w).permute(0, 2, 3, 1)
 
 
 def gaussian_kernel(sigma: float, *, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu",

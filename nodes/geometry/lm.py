@@ -14,10 +14,14 @@ The schedule (Marquardt 1963, with Nielsen's accept/reject bookkeeping; one for 
 - gain: the actual relative decrease `(C(x) - C(x + dx)) / C(x)`; a step is *accepted* for an
   element when it lowers its cost, and then `lambda_b <- max(lambda_b down, lambda_min)`,
   else *rejected*, `lambda_b <- min(lambda_b up, lambda_max)`, and retried (the Jacobian
-  kept) up to `tries` times in one iteration while no element improved;
+  kept) up to `tries` times in one iteration until that element's step is accepted;
 - stopping: an element stops when an accepted step lowers its cost by less than `rel_tol`
-  relative; the solve stops after `iterations` iterations, when every element has stopped, or
-  (with `stop_when_stuck`) when an iteration's `tries` tries improved no element.
+  relative, or (with `stop_when_stuck`) when an iteration's `tries` tries did not lower it;
+  the solve stops after `iterations` iterations or when every element has stopped.
+
+Every decision is the element's own, so an element's result does not depend on the elements
+solved beside it (a fit's frame on the frames of its batch). Until stop 41 the tries stopped
+for every element once any element's step was accepted, and the solve when none was.
 
 Each iteration costs one linearization and one to `tries` residual evaluations.
 """
@@ -30,7 +34,7 @@ from typing import Callable, NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["LMSchedule", "LMResult", "damped_step", "from_jacobian", "levenberg_marquardt"]
+__all__ = ["LMSchedule", "LMResult", "damped_step", "from_jacobian", "levenberg_marquardt", "normal_products"]
 
 
 @dataclass(frozen=True)
@@ -89,13 +93,22 @@ def damped_step(jtj: Tensor, jtr: Tensor, lam: Tensor, *, diag_floor: float = 1e
     return -torch.linalg.solve(a, jtr[..., None])[..., 0]
 
 
+def normal_products(jac: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    """`(J^T J, J^T r)` ((B, P, P), (B, P)) of (B, M, P) Jacobians and (B, M) residuals, one
+    problem at a time: a batched product takes another kernel for a batch of one than for
+    several (J^T J of one (500, 9) Jacobian differed by 4e-14 between the two), so a problem's
+    steps, and the frames a compacted solve (`compact=True`) keeps running, would depend on the
+    problems solved beside it."""
+    jt = jac.transpose(1, 2)
+    return (torch.stack([a @ b for a, b in zip(jt, jac)]),
+            torch.stack([a @ b for a, b in zip(jt, r[..., None])])[..., 0])
+
+
 def from_jacobian(jacobian: Callable[[Tensor], Tensor]) -> Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]:
     """Normal equations `(J^T J, J^T r)` ((B, P, P), (B, P)) from a Jacobian callback x (B, P) -> (B, M, P)."""
 
     def normal(x: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
-        jac = jacobian(x)
-        jt = jac.transpose(1, 2)
-        return jt @ jac, (jt @ r[..., None])[..., 0]
+        return normal_products(jacobian(x), r)
 
     return normal
 
@@ -153,33 +166,43 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor],
             r = linear[2]
             cost = (r * r).sum(1)
         better = torch.zeros_like(running)
-        for _try in range(s.tries):
+        x_new, r_new, cost_new = x, r, cost
+        for _try in range(s.tries):  # each element retries until its own step is accepted
+            trying = running & ~better
             step = damped_step(jtj, jtr, lam, diag_floor=s.diag_floor, floor=s.floor)
-            x_new = x + step if retract is None else retract(x, step)
-            r_new = residuals(x_new)
-            cost_new = (r_new * r_new).sum(1)
-            better = (cost_new < cost) & running
-            lam = torch.where(better, (lam * s.down).clamp_min(s.lam_min),
-                              torch.where(running, (lam * s.up).clamp_max(s.lam_max), lam))
-            if bool(better.any()):
+            x_try = x + step if retract is None else retract(x, step)
+            r_try = residuals(x_try)
+            cost_try = (r_try * r_try).sum(1)
+            ok = (cost_try < cost) & trying
+            lam = torch.where(ok, (lam * s.down).clamp_min(s.lam_min),
+                              torch.where(trying, (lam * s.up).clamp_max(s.lam_max), lam))
+            r_new, r_try = _pad_to(r_new, r_try)
+            x_new = torch.where(ok[:, None], x_try, x_new)
+            r_new = torch.where(ok[:, None], r_try, r_new)
+            cost_new = torch.where(ok, cost_try, cost_new)
+            better = better | ok
+            if not bool((running & ~better).any()):
                 break
-        if not bool(better.any()):
-            if s.stop_when_stuck:
-                break
-            continue
         gain = (cost - cost_new) / cost.clamp_min(1e-12)
         running = running & ~(better & (gain < s.rel_tol))
+        if s.stop_when_stuck:
+            running = running & better
         x = torch.where(better[:, None], x_new, x)
-        if r_new.shape[1] != r.shape[1]:  # the residual count follows x (a coverage): pad with zeros,
-            m = max(r_new.shape[1], r.shape[1])  # which leave every cost unchanged
-            r_new, r = (torch.nn.functional.pad(v, (0, m - v.shape[1])) for v in (r_new, r))
+        r_new, r = _pad_to(r_new, r)
         r = torch.where(better[:, None], r_new, r)
         cost = torch.where(better, cost_new, cost)
-        if relinearize is not None:
+        if relinearize is not None and bool(better.any()):
             x = relinearize(x, better)
         if not bool(running.any()):
             break
     return LMResult(x, r, cost, lam, done)
+
+
+def _pad_to(*parts: Tensor) -> tuple[Tensor, ...]:
+    """(B_i, M_i) residuals padded with zeros to the widest: the residual count may follow x (a
+    coverage), and zeros leave every cost unchanged."""
+    m = max(v.shape[1] for v in parts)
+    return tuple(torch.nn.functional.pad(v, (0, m - v.shape[1])) if v.shape[1] < m else v for v in parts)
 
 
 def _levenberg_marquardt_compact(residuals: Callable[..., Tensor], normal: Callable[..., tuple[Tensor, Tensor]],
@@ -204,28 +227,40 @@ def _levenberg_marquardt_compact(residuals: Callable[..., Tensor], normal: Calla
         if len(linear) != 2:
             raise ValueError(f"normal: expected (J^T J, J^T r) with compact=True, found {len(linear)} outputs")
         jtj, jtr = linear
-        better = torch.zeros(len(rows), dtype=torch.bool, device=x.device)
-        for _try in range(s.tries):
-            step = damped_step(jtj, jtr, lam_run, diag_floor=s.diag_floor, floor=s.floor)
-            x_new = x_run + step if retract is None else retract(x_run, step)
-            r_new = residuals(x_new, rows)
-            cost_new = (r_new * r_new).sum(1)
-            better = cost_new < cost_run
-            lam_run = torch.where(better, (lam_run * s.down).clamp_min(s.lam_min),
-                                  (lam_run * s.up).clamp_max(s.lam_max))
-            if bool(better.any()):
+        n = len(rows)
+        better = torch.zeros(n, dtype=torch.bool, device=x.device)
+        x_new, r_new, cost_new = x_run, r_run, cost_run
+        trying = torch.arange(n, device=x.device)  # positions in `rows` whose step is not yet accepted
+        for _try in range(s.tries):  # each element retries until its own step is accepted
+            step = damped_step(jtj[trying], jtr[trying], lam_run[trying], diag_floor=s.diag_floor, floor=s.floor)
+            x_try = x_run[trying] + step if retract is None else retract(x_run[trying], step)
+            r_try = residuals(x_try, rows[trying])
+            cost_try = (r_try * r_try).sum(1)
+            ok = cost_try < cost_run[trying]
+            lam_run = lam_run.index_copy(0, trying, torch.where(ok, (lam_run[trying] * s.down).clamp_min(s.lam_min),
+                                                                (lam_run[trying] * s.up).clamp_max(s.lam_max)))
+            if bool(ok.any()):
+                took = trying[ok]
+                r_new, r_try = _pad_to(r_new, r_try)
+                x_new = x_new.index_copy(0, took, x_try[ok])
+                r_new = r_new.index_copy(0, took, r_try[ok])
+                cost_new = cost_new.index_copy(0, took, cost_try[ok])
+                better = better.index_fill(0, took, True)
+                trying = trying[~ok]
+            if not len(trying):
                 break
         lam = lam.index_copy(0, rows, lam_run)
+        gain = (cost_run - cost_new) / cost_run.clamp_min(1e-12)
+        still = ~(better & (gain < s.rel_tol))
+        if s.stop_when_stuck:
+            still = still & better
+        running = running.index_copy(0, rows, still)
         if not bool(better.any()):
-            if s.stop_when_stuck:
+            if not bool(running.any()):
                 break
             continue
-        gain = (cost_run - cost_new) / cost_run.clamp_min(1e-12)
-        running = running.index_copy(0, rows, ~(better & (gain < s.rel_tol)))
         x_run = torch.where(better[:, None], x_new, x_run)
-        if r_new.shape[1] != r.shape[1]:  # the residual count follows x (a coverage): pad with zeros,
-            m = max(r_new.shape[1], r.shape[1])  # which leave every cost unchanged
-            r_new, r, r_run = (torch.nn.functional.pad(v, (0, m - v.shape[1])) for v in (r_new, r, r_run))
+        r_new, r, r_run = _pad_to(r_new, r, r_run)
         r = r.index_copy(0, rows, torch.where(better[:, None], r_new, r_run))
         cost = cost.index_copy(0, rows, torch.where(better, cost_new, cost_run))
         if relinearize is not None:

@@ -537,9 +537,23 @@ class TfliteModule(nn.Module):
         """The replay (see the class docstring) by a plan resolved once per input size
         (`_build_plan`): each operator a closure over its weights, paddings and layouts, constants'
         DEQUANTIZE dropped, registers freed after their last use. Same values as
-        `forward_reference` to float rounding (measured: at most 1e-6 of the output's scale)."""
+        `forward_reference` to float rounding (measured: at most 1e-6 of the output's scale).
+
+        Each image of the batch is run alone, so its outputs do not depend on the batch it came
+        in: a 1 x 1 convolution done as a matrix product over B x H x W rows blocks its sums by
+        the row count (the face mesh's points of one crop moved by up to 4.6e-5 px between a
+        batch of 8 and a batch of 1, and fit.Expression, a flat valley, turned that into 0.06 in
+        its output between `batch` 8 and 3, so a frame's fit depended on its neighbours). Costs
+        about 1 ms a crop of the face mesh on one thread."""
         if image.ndim != 4:
             raise ValueError(f"{self.graph.source}: image: expected shape (B, H, W, C), found {tuple(image.shape)}")
+        if image.shape[0] > 1:
+            rows = [self._forward_one(image[i:i + 1]) for i in range(image.shape[0])]
+            return tuple(torch.cat(parts) for parts in zip(*rows))
+        return self._forward_one(image)
+
+    def _forward_one(self, image: Tensor) -> tuple[Tensor, ...]:
+        """`forward` of a (1, H, W, C) image (any batch runs, but its sums depend on the batch)."""
         key = tuple(image.shape[1:])
         plan = self._plans.get(key)
         if plan is None:

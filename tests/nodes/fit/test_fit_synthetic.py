@@ -189,7 +189,9 @@ def test_expression_with_the_pose_held_keeps_the_rigid_pose_and_passes_kept_fram
     np.testing.assert_array_equal(got[[2, 3]], start[[2, 3]])  # no landmarks / kept: passed through
     assert out["failed"].values[:, 0].tolist() == [0, 0, 0, 0]
     j = model.expression_names.index("jawOpen")
-    assert np.abs(got[[0, 1], 12 + j] - truth["weights"][[0, 1], j]).max() < 0.25  # the jaw was re-estimated
+    # the jaw was re-estimated (one round of 4 iterations from 0.05: frame 1 lands 0.24-0.27 from the truth,
+    # depending on the solver's retry bookkeeping, per frame since stop 41)
+    assert np.abs(got[[0, 1], 12 + j] - truth["weights"][[0, 1], j]).max() < 0.3
     assert not np.allclose(got[[0, 1], 12:], start[[0, 1], 12:])
     with pytest.raises(Exception, match="pose"):
         run_node(Expression, {"hold_pose": True}, frames=range(FRAMES), landmarks=lms, boxes=bxs, cameras=cams[:1],
