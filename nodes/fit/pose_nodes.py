@@ -48,7 +48,8 @@ class _FitParams(NodeParams):
                                       "'plate_noise'); used when `images` is connected; 0 = landmarks only. The "
                                       "default holds the surface where the landmarks are ambiguous without "
                                       "outweighing them (measurements: nodes.fit.tuning.PHOTOMETRIC_WEIGHT).")
-    batch: int = Param(8, ge=1, description="Frames solved together.", affects_output=False)
+    batch: int = Param(8, ge=1, description="Frames solved together (a frame's result is the same in any "
+                       "batch: tests/nodes/fit/test_batch_independence.py).", affects_output=False)
 
 
 def _run_fit(node: Node, stages_kind: str, landmarks: list[Landmarks2D], boxes: list[ParamSequence],
