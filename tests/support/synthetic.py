@@ -194,6 +194,17 @@ class Scene:
     background: np.ndarray
 
 
+def read_plates(plates: np.ndarray) -> tuple[ImageSequence, Any, Any]:
+    """(F, H, W, 3) linear plates -> the sequence, `landmarks.DetectFaces`' boxes and
+    `landmarks.FaceLandmarks`' 68 points on them (what the fit nodes take as the plate's reading)."""
+    from nodegraph import run_node
+    from nodes.landmarks import DetectFaces, FaceLandmarks
+
+    seq = ImageSequence(plates, colour_space="linear")
+    boxes = run_node(DetectFaces, images=seq)["boxes"]
+    return seq, boxes, run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"]
+
+
 def make_scene(size: int = 96, *, region: str = "", texture: float = 0.35, seed: int = 0,
                distance_cm: float = 55.0) -> Scene:
     """Build the synthetic scene.

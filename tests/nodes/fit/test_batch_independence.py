@@ -10,13 +10,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nodegraph import Camera, ImageSequence, run_node  # noqa: E402
+from nodegraph import Camera, run_node  # noqa: E402
 from nodes.fit import Expression, RigidPose  # noqa: E402
 from nodes.fit.solve import PoseState, Stage, solve_stage  # noqa: E402
 from nodes.geometry.lm import LMSchedule, from_jacobian, levenberg_marquardt  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
-from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
-from tests.support.synthetic import random_face_parameters, render_truth_plates  # noqa: E402
+from tests.support.synthetic import random_face_parameters, read_plates, render_truth_plates  # noqa: E402
 
 from .test_compact_solve import _batch, _rosenbrock, _rosenbrock_jac  # noqa: E402
 
@@ -76,9 +75,7 @@ def test_rigid_and_expression_fits_do_not_depend_on_the_batch():
     model = load_face_model()
     cam = Camera.from_fov(192, 192, 30.0)
     truth = random_face_parameters(model, 4, seed=2, distance_cm=65.0)
-    seq = ImageSequence(render_truth_plates(model, [cam], truth, noise=0.005)[0], colour_space="linear")
-    boxes = run_node(DetectFaces, images=seq)["boxes"]
-    marks = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"]
+    seq, boxes, marks = read_plates(render_truth_plates(model, [cam], truth, noise=0.005)[0])
     common = dict(landmarks=[marks], boxes=[boxes], cameras=[cam], images=[seq], model=model)
     out = {}
     for batch in (4, 3):

@@ -13,9 +13,8 @@ pytest.importorskip("tflite")
 
 from nodegraph import Camera, ImageSequence, run_node  # noqa: E402
 from nodes.fit import EstimateAppearance, EstimateIdentity, Expression, FlagFailures, RigidPose  # noqa: E402
-from tests.support.synthetic import orbit_camera, random_face_parameters, render_truth_plates  # noqa: E402
+from tests.support.synthetic import orbit_camera, random_face_parameters, read_plates, render_truth_plates  # noqa: E402
 from nodes.io.face_model import load_face_model  # noqa: E402
-from nodes.landmarks import DetectFaces, FaceLandmarks  # noqa: E402
 
 FRAMES = 4
 SIZE = 256
@@ -27,13 +26,6 @@ def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
 
 
-def _marks(images: np.ndarray) -> tuple:
-    seq = ImageSequence(images, colour_space="linear")
-    det = run_node(DetectFaces, images=seq)
-    marks = run_node(FaceLandmarks, images=seq, boxes=det["boxes"])
-    return seq, det["boxes"], marks["landmarks68"]
-
-
 @pytest.fixture(scope="module")
 def scene():
     model = load_face_model()
@@ -41,7 +33,7 @@ def scene():
     cam1 = orbit_camera(cam0, 35.0, [0.0, 0.0, DISTANCE], name="cam1")
     truth = random_face_parameters(model, FRAMES, seed=3, distance_cm=DISTANCE)
     plates = render_truth_plates(model, [cam0, cam1], truth)
-    views = [_marks(p) for p in plates]
+    views = [read_plates(p) for p in plates]
     return model, [cam0, cam1], truth, views
 
 
@@ -206,7 +198,7 @@ def test_photometric_term_recovers_the_rotation_with_the_true_identity(tmp_path)
     cams = [Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")]
     frames = 8
     truth = random_face_parameters(model, frames, seed=0, distance_cm=DISTANCE)
-    seq, boxes, marks = _marks(render_truth_plates(model, cams, truth)[0])
+    seq, boxes, marks = read_plates(render_truth_plates(model, cams, truth)[0])
     np.savez(tmp_path / "identity.npz", identity=truth["identity"])
     fitted = run_node(EstimateIdentity, {"mode": "file", "path": str(tmp_path / "identity.npz")}, frames=range(frames),
                       landmarks=[marks], boxes=[boxes], cameras=cams[:1], model=model)["fitted_model"]
@@ -245,7 +237,7 @@ def test_on_a_noisy_plate_the_appearance_paints_several_frames(tmp_path):
     cams = [Camera.from_fov(SIZE, SIZE, 30.0, name="cam0")]
     frames = 8
     truth = random_face_parameters(model, frames, seed=0, distance_cm=DISTANCE)
-    seq, boxes, marks = _marks(render_truth_plates(model, cams, truth, noise=0.03)[0])
+    seq, boxes, marks = read_plates(render_truth_plates(model, cams, truth, noise=0.03)[0])
     np.savez(tmp_path / "identity.npz", identity=truth["identity"])
     fitted = run_node(EstimateIdentity, {"mode": "file", "path": str(tmp_path / "identity.npz")}, frames=range(frames),
                       landmarks=[marks], boxes=[boxes], cameras=cams[:1], model=model)["fitted_model"]

@@ -133,17 +133,14 @@ def test_identity_from_the_468_face_mesh_points():
 
 def test_default_appearance_carries_the_plates_noise_when_asked():
     pytest.importorskip("tflite")
-    from nodegraph import ImageSequence, NodeError, run_node
+    from nodegraph import NodeError, run_node
     from nodes.fit import EstimateAppearance
-    from tests.support.synthetic import random_face_parameters, render_truth_plates
-    from nodes.landmarks import DetectFaces, FaceLandmarks
+    from tests.support.synthetic import random_face_parameters, read_plates, render_truth_plates
 
     face = load_face_model()
     cam = Camera.from_fov(256, 256, 30.0)
     truth = random_face_parameters(face, 2, seed=5, distance_cm=65.0)
-    seq = ImageSequence(render_truth_plates(face, [cam], truth, noise=0.03)[0], colour_space="linear")
-    boxes = run_node(DetectFaces, images=seq)["boxes"]
-    marks = run_node(FaceLandmarks, images=seq, boxes=boxes)["landmarks68"]
+    seq, boxes, marks = read_plates(render_truth_plates(face, [cam], truth, noise=0.03)[0])
     where = dict(images=seq, landmarks=marks, boxes=boxes, camera=cam, model=face)
     assert run_node(EstimateAppearance, {"mode": "default", "noise": 0}, **where)["appearance"].value["noise"] == 0.0
     for asked in (-1, -2):  # the plate's; by default (-2) the plate's where it is above 0.02
