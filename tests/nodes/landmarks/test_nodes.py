@@ -71,3 +71,22 @@ def test_overlays_and_draw_overlay(tmp_path, images):
     out = run_node(LandmarkOverlays, {"folder": str(tmp_path)}, images=images, boxes=boxes, landmarks68=l68,
                    landmarks468=l468)
     assert [p.rsplit("/", 1)[-1] for p in out["files"].paths] == ["overlay.0000.png", "overlay.0001.png"]
+
+
+@pytest.mark.parametrize("channels, colour_space", [(["R", "G", "B"], "srgb"), (["A", "R", "G", "B", "Z"], "srgb"),
+                                                    (["R", "A", "G", "B"], "srgb"), (["Y"], "srgb"),
+                                                    (["R", "G", "B"], "linear")])
+def test_network_images_are_the_colour_channels_in_srgb_clipped(channels, colour_space):
+    from nodes.landmarks.nodes import network_images
+    from nodegraph.images import linear_to_srgb
+
+    rng = np.random.default_rng(3)
+    pixels = (rng.random((2, 5, 7, len(channels))) * 1.4 - 0.2).astype(np.float64)
+    got = network_images(ImageSequence(pixels, channels=channels, colour_space=colour_space))
+    colour = [i for i, name in enumerate(channels) if name not in ("A", "Z")]
+    want = pixels.astype(np.float32)[..., colour]
+    if colour_space == "linear":
+        want = linear_to_srgb(want)
+    want = np.repeat(want, 3, -1) if len(colour) == 1 else want
+    assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == (2, 5, 7, 3)
+    np.testing.assert_array_equal(got, np.clip(want, 0.0, 1.0))
