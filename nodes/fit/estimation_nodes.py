@@ -324,13 +324,13 @@ class EstimateIdentity(Node):
                 raise InputError("landmarks", "expected frames with a face to estimate the identity from, found none")
             pick = found[np.unique(np.linspace(0, len(found) - 1, min(p.frames_used, len(found))).round().astype(int))]
             fm = _fit_model(model, appearance, self.device)
-            plates = _checked_plates(images, cameras, views.seen.shape[0]) if images else None
+            plates = _checked_plates(images, cameras, views.seen.shape[0], select=pick) if images else None
             photo = bool(plates) and appearance is not None and p.photometric_weight > 0
             # frames whose plate the albedo was painted from count no photometric term (see the function)
             frame_weight = photometric_frame_weights(appearance, self.frames.start + pick) if photo else None
             photo = photo and bool(frame_weight.any())
             sub = _views(landmarks, boxes, cameras, self.device, select=pick, allow_mesh=True,
-                         plates=plates if photo else None)
+                         plates=plates if photo else None, plates_selected=True)
             mesh = sub.target.shape[2] > 68
             sub68 = dataclasses.replace(sub, target=sub.target[:, :, :68])
             net = load_face_mesh(self.device)

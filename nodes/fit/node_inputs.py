@@ -72,8 +72,10 @@ def _plate_crops(plates: list[np.ndarray], box: np.ndarray, seen: np.ndarray, fr
     return out
 
 
-def _checked_plates(images: list[ImageSequence], cameras: list[Camera], frames: int) -> list[np.ndarray]:
-    """The plates as `_linear_rgb` arrays (converted once per run), after checking them against the cameras."""
+def _checked_plates(images: list[ImageSequence], cameras: list[Camera], frames: int,
+                    select: np.ndarray | None = None) -> list[np.ndarray]:
+    """The plates as `_linear_rgb` arrays (converted once per run; only the frames `select` when
+    given: an identity uses 4 frames of a shot), after checking them against the cameras."""
     if len(images) != len(cameras):
         raise InputError("images", f"expected one plate per camera ({len(cameras)}), found {len(images)}")
     for c, (seq, cam) in enumerate(zip(images, cameras)):
@@ -83,7 +85,7 @@ def _checked_plates(images: list[ImageSequence], cameras: list[Camera], frames: 
         if (w, h) != (cam.width, cam.height):
             raise InputError("images", f"camera {c}: expected {cam.width}x{cam.height} plates (the camera's), "
                              f"found {w}x{h}")
-    return [_linear_rgb(seq) for seq in images]
+    return [_linear_rgb(seq, slice(None) if select is None else np.asarray(select)) for seq in images]
 
 
 def _iris_centres(iris: list[Landmarks2D], cameras: list[Camera], frames: int) -> np.ndarray:

@@ -166,3 +166,19 @@ def test_view_spread_counts_the_frames_turns_and_the_cameras():
     still = turns[:1].expand(3, 3, 3)
     assert abs(view_spread_deg(still, w2c, torch.tensor([[True, True]] * 3)) - 35.0) < 1e-3  # the second camera
     assert view_spread_deg(turns, w2c, torch.zeros(3, 2, dtype=torch.bool)) == 0.0  # nothing seen
+
+
+def test_checked_plates_of_selected_frames_are_those_rows_of_all_the_plates():
+    """fit.EstimateIdentity converts only the frames it uses (4 of a shot) to linear colour: the
+    same values as those rows of the whole shot's conversion."""
+    from nodegraph import ImageSequence
+    from nodes.fit.node_inputs import _checked_plates
+
+    pixels = np.random.default_rng(0).random((6, 8, 10, 4)).astype(np.float32)
+    seq = ImageSequence(pixels, channels=["R", "G", "B", "A"], colour_space="srgb")
+    cam = Camera.from_fov(10, 8, 40.0)
+    pick = np.array([1, 4])
+    whole = _checked_plates([seq], [cam], 6)[0]
+    part = _checked_plates([seq], [cam], 6, select=pick)[0]
+    assert part.shape == (2, 8, 10, 3)
+    np.testing.assert_array_equal(part, whole[pick])
