@@ -660,8 +660,9 @@ def _part_way(start: PoseState, end: PoseState, step: Tensor) -> PoseState:
     omega = torch.where(sin > 1e-12, vec / sin.clamp_min(1e-300) * 2 * torch.atan2(sin, q[:, :1]), 2 * vec)
     rel = axis_angle_to_rotmat(omega * step[:, None].to(torch.float64)).to(start.rot.dtype)
     s1 = step.to(start.trans.dtype)[:, None]
-    return PoseState(rel @ start.rot, start.trans + s1 * (end.trans - start.trans),
-                     start.weights + s1 * (end.weights - start.weights))
+    moved = PoseState(rel @ start.rot, start.trans + s1 * (end.trans - start.trans),
+                      start.weights + s1 * (end.weights - start.weights))
+    return _mix(step == 1, end, moved)  # a whole step is `end` exactly, whatever the other frames' steps
 
 
 def _keep_better(best: PoseState, best_e: Tensor | None, best_objective: Tensor | None, state: PoseState,

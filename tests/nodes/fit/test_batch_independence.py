@@ -70,7 +70,7 @@ def test_a_stage_solve_gives_a_frame_the_same_bits_in_any_batch():
 
 def test_rigid_and_expression_fits_do_not_depend_on_the_batch():
     """Four synthetic plates (the bundled model at 65 cm, 0.005 noise), fit.RigidPose and
-    fit.Expression with the photometric term, solved four together and three + one: the same
+    fit.Expression with the photometric term, solved four together, three + one and one by one: the same
     bits (the renders, the network reads, the solves of a frame never see the other frames)."""
     model = load_face_model()
     cam = Camera.from_fov(192, 192, 30.0)
@@ -78,13 +78,14 @@ def test_rigid_and_expression_fits_do_not_depend_on_the_batch():
     seq, boxes, marks = read_plates(render_truth_plates(model, [cam], truth, noise=0.005)[0])
     common = dict(landmarks=[marks], boxes=[boxes], cameras=[cam], images=[seq], model=model)
     out = {}
-    for batch in (4, 3):
+    for batch in (4, 3, 1):
         rigid = run_node(RigidPose, {"batch": batch, "rounds": 2}, frames=range(4), **common)
         expr = run_node(Expression, {"batch": batch, "rounds": 2}, frames=range(4), pose=rigid["pose"], **common)
         out[batch] = rigid["pose"].values, expr["fitted"].values
     assert np.isfinite(out[4][1]).all()
-    for a, b in zip(out[4], out[3]):
-        assert np.array_equal(a, b)
+    for batch in (3, 1):
+        for a, b in zip(out[4], out[batch]):
+            assert np.array_equal(a, b), batch
 
 
 def test_the_blur_and_the_crop_sampling_of_an_image_do_not_depend_on_its_batch_or_size():
