@@ -26,6 +26,17 @@ __all__ = ["HashingWriter", "write_text_atomic", "write_npz_atomic", "write_byte
 _FILE_HASHES: dict[tuple[str, int, int], str] = {}
 
 
+def _process_umask() -> int:
+    """The process's umask, read once at import: setting it to read it, as `os.umask` must, would
+    let a file another thread creates meanwhile get the temporary mask."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _process_umask()
+
+
 def staged_location(path: str | os.PathLike) -> Path:
     """Where the bytes of `path` are now: in a writer's task of a run, the staged copy of a
     file it wrote (see `nodegraph.staging`); else `path` itself."""
@@ -44,17 +55,8 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     Parent folders are created; on any error the temp file is removed and `path` is untouched.
     Inside a writer's task of a run the file is staged (see the module docstring).
     """
-    path = _destination(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:  # its permissions too: mkstemp's 0o600 left CSVs and reports unreadable to others
+        tmp.write_text(text)
 
 
 def file_sha256(path: str | os.PathLike, *, memo: bool = True) -> str:
@@ -105,9 +107,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

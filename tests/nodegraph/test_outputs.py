@@ -376,3 +376,27 @@ def test_staging_folders_of_killed_runs_are_swept(tmp_path, cache_dir):
     alive.mkdir()
     assert run(_ramp_writer(str(out / "v{frame}.txt"), num_frames=2), scheduler="sync", cache=cache_dir).ok
     assert not left.exists() and alive.exists()
+
+
+@pytest.mark.parametrize("writer", ["text", "bytes", "npz"])
+def test_atomic_writers_give_files_the_usual_permissions(tmp_path, writer):
+    """A written file is readable as any file the user makes (0o666 minus the umask), not the
+    temporary file's 0o600: the Live Link CSV and the reports were unreadable to other users."""
+    import os
+    import stat
+
+    import numpy as np
+
+    from nodegraph.files import write_bytes_atomic, write_npz_atomic, write_text_atomic
+
+    path = tmp_path / f"out.{writer}"
+    if writer == "text":
+        write_text_atomic(path, "a,b\n1,2\n")
+    elif writer == "bytes":
+        write_bytes_atomic(path, b"\x00\x01")
+    else:
+        write_npz_atomic(path, {"a": np.zeros(3)})
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary file left
