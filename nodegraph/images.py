@@ -112,6 +112,17 @@ class ImageSequence(PortType):
         return [i for i, name in enumerate(self.channels)
                 if name.rsplit(".", 1)[-1].upper() not in _NON_COLOUR_CHANNELS]
 
+    def rgb(self) -> np.ndarray:
+        """(F, H, W, 3) the first three colour channels (a view when they are consecutive), or a
+        single colour channel repeated three times (grey); pixels as stored (no conversion). May
+        share memory with `pixels`: read it, do not write into it."""
+        idx = self.colour_channels()
+        if len(idx) >= 3:
+            first = idx[0]
+            return self.pixels[..., first:first + 3] if idx[:3] == [first, first + 1, first + 2] \
+                else self.pixels[..., idx[:3]]
+        return np.repeat(self.pixels[..., idx[:1]], 3, -1)
+
     def to_colour_space(self, colour_space: str) -> "ImageSequence":
         """Return this sequence in `colour_space` ("linear" or "srgb"), converting colour
         channels with the exact sRGB curve; `self` when it is already there (nothing copied)."""

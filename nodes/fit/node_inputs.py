@@ -46,10 +46,8 @@ def _linear_rgb(images: ImageSequence, frames: Any = slice(None)) -> np.ndarray:
     """(F', H, W, 3) linear colour of the frames asked for (one channel repeated for grey plates)."""
     pixels = images.pixels[frames]
     single = pixels.ndim == images.pixels.ndim - 1  # one frame asked for
-    plate = dataclasses.replace(images, pixels=pixels[None] if single else pixels).to_linear()  # these frames only
-    idx = plate.colour_channels()
-    pix = plate.pixels[0] if single else plate.pixels
-    return pix[..., idx[:3]] if len(idx) >= 3 else np.repeat(pix[..., idx[:1]], 3, -1)
+    rgb = dataclasses.replace(images, pixels=pixels[None] if single else pixels).to_linear().rgb()  # these frames only
+    return rgb[0] if single else rgb
 
 
 def _plate_crops(plates: list[np.ndarray], box: np.ndarray, seen: np.ndarray, frames: np.ndarray,

@@ -54,12 +54,7 @@ def network_images(images: ImageSequence, where: str = "images") -> np.ndarray:
     idx = images.colour_channels()
     if not idx:
         raise InputError(where, f"expected RGB or grey images, found channels {images.channels}")
-    srgb = images.to_srgb().pixels
-    if len(idx) >= 3:  # consecutive channels are a view (a list index copied 48 frames of 512^2 in 0.5 s)
-        first = idx[0]
-        pixels = srgb[..., first:first + 3] if list(idx[:3]) == [first, first + 1, first + 2] else srgb[..., idx[:3]]
-    else:
-        pixels = np.repeat(srgb[..., idx[:1]], 3, -1)
+    pixels = images.to_srgb().rgb()  # consecutive channels are a view (a list index copied 48 frames of 512^2 in 0.5 s)
     return np.clip(pixels, 0.0, 1.0, out=np.empty(pixels.shape, np.float32))  # one pass into a new array
 
 
