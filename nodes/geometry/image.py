@@ -182,11 +182,11 @@ def sample_separable(images: Tensor, xs: Tensor, ys: Tensor) -> Tensor:
     x0, x1, wx0, wx1 = taps(xs, w)
     rows = torch.arange(n, device=images.device)[:, None]
     along_y = images[rows, y0] * wy0[..., None, None] + images[rows, y1] * wy1[..., None, None]  # (N, S_y, W, C)
-    cols = rows[:, :, None]
-    return (along_y[cols, torch.arange(ys.shape[1], device=images.device)[None, :, None], x0[:, None, :]]
-            * wx0[:, None, :, None]
-            + along_y[cols, torch.arange(ys.shape[1], device=images.device)[None, :, None], x1[:, None, :]]
-            * wx1[:, None, :, None])
+
+    def columns(x: Tensor) -> Tensor:  # (N, S_y, S_x, C): along_y's columns x (N, S_x)
+        return along_y.gather(2, x[:, None, :, None].expand(n, ys.shape[1], xs.shape[1], c))
+
+    return columns(x0) * wx0[:, None, :, None] + columns(x1) * wx1[:, None, :, None]
 
 
 def resize_bilinear(images: Tensor, size: tuple[int, int], *, antialias: bool = False) -> Tensor:
