@@ -37,7 +37,7 @@ import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Iterator, Mapping
+from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping
 
 from pydantic import ValidationError
 
@@ -131,6 +131,11 @@ class Node:
     inputs: ClassVar[dict[str, In]] = {}
     outputs: ClassVar[dict[str, Out]] = {}
     cache_root: str | None = None  # the run's cache folder, set by the runner (None: no cache)
+    skips_unread_outputs: ClassVar[bool] = False
+    """True: `run` may leave out of its dict the outputs no edge of the graph reads (it asks
+    `self.wants(port)`), e.g. a stabilized mesh beside the motion that is all a graph uses. The
+    runner then keys the task's cache entry by the outputs it computed too, so a graph that
+    reads another output recomputes instead of finding the entry without it."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -175,6 +180,9 @@ class Node:
         self.seed: int = 0
         self._device = "cpu"
         self._progress: Callable[[float, str], None] | None = None
+        self.wanted_outputs: frozenset[str] = frozenset(self.outputs)
+        """The outputs this run must return (all but those no edge reads, for a node that
+        `skips_unread_outputs`); set by `execute`."""
         self.run_log: list[dict[str, Any]] = []
         """With `uses_run_log`: one record per task upstream of this one in the current run
         (name, node, frames, status: executed / cached / restored / ..., seconds), for run
@@ -190,6 +198,10 @@ class Node:
 
             self._device = "cuda" if torch.cuda.is_available() else "cpu"
         return self._device
+
+    def wants(self, port: str) -> bool:
+        """Whether this run must return output `port` (see `skips_unread_outputs`)."""
+        return port in self.wanted_outputs
 
     # -- hooks a node type may override -----------------------------------------------
     def run(self, **inputs: Any) -> Mapping[str, PortType]:
@@ -385,7 +397,7 @@ def intra_op_threads(threads: int | None) -> Iterator[None]:
 
 def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: range,
             progress: Callable[[float, str], None] | None = None, *, seed: int | None = None,
-            device: str = "cpu") -> dict[str, PortType]:
+            device: str = "cpu", wanted: Iterable[str] | None = None) -> dict[str, PortType]:
     """Run `node` on values covering `frames`, checking inputs and outputs.
 
     Args:
@@ -397,6 +409,8 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
         seed: the node's `self.seed` (the runner derives it from the task's key); None: from
             the node's type and key parameters.
         device: "cpu", "cuda" or "auto", the node's `self.device`.
+        wanted: the outputs the run must return (None: all); the others may be left out only
+            by a node that `skips_unread_outputs`.
     Returns:
         port name -> value.
     Raises:
@@ -432,6 +446,12 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
     node.seed = task_seed(json.dumps([node.type_name, node.key_params(), frames.start, frames.stop],
                                      sort_keys=True)) if seed is None else int(seed)
     node._device = device
+    if wanted is not None:
+        unknown = set(wanted) - set(node.outputs)
+        if unknown:
+            raise NodeError(node.node_id, node.type_name, f"wanted unknown output(s) {sorted(unknown)}; "
+                            f"outputs are {sorted(node.outputs)}")
+        node.wanted_outputs = frozenset(wanted) if node.skips_unread_outputs else frozenset(node.outputs)
     try:
         with intra_op_threads(node.torch_threads):
             result = node.run(**{name: (list(inputs.get(name) or []) if port.many else inputs.get(name))
@@ -443,13 +463,15 @@ def execute(node: Node, inputs: Mapping[str, Any], frames: range, full_frames: r
     if not isinstance(result, Mapping):
         raise NodeError(node.node_id, node.type_name,
                         f"run() must return a dict of outputs, found {type(result).__name__}")
-    missing = set(node.outputs) - set(result)
+    missing = node.wanted_outputs - set(result)
     extra = set(result) - set(node.outputs)
     if missing or extra:
         raise NodeError(node.node_id, node.type_name,
-                        f"run() returned ports {sorted(result)}, declared {sorted(node.outputs)}")
+                        f"run() returned ports {sorted(result)}, declared {sorted(node.outputs)}"
+                        + (f" (wanted {sorted(node.wanted_outputs)})" if node.wanted_outputs != set(node.outputs) else ""))
     for name, port in node.outputs.items():
-        _check_value(node, port, result[name], count, "output", frames)
+        if name in result:
+            _check_value(node, port, result[name], count, "output", frames)
     return dict(result)
 
 

@@ -235,6 +235,7 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
             raise GraphError([GraphIssue(nid, "", "unknown node for --force")])
         forced |= graph.descendants(nid)
 
+    read = _read_outputs(graph, nodes, targets)
     plan = Plan(graph, frames, chunk, nodes=nodes, targets=targets, cache=cache)
     full = (frames.start, frames.stop)
     hash_file = cache.file_hash if cache is not None else file_sha256
@@ -281,6 +282,8 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
                                      for slot, pieces in sorted(inputs.items(), key=lambda item: str(item[0]))}
             description["frames"] = list(span) if span else None
             description["out"] = list(out) if out else None
+            if nid in read:  # only these outputs are computed: part of the key (never an entry without one)
+                description["outputs"] = read[nid]
             name = TaskName(nid, out)
             task = TaskPlan(name, nid, cls.type_name, mode, span or full, out or full, inputs,
                             make_key(description), description, cls.cacheable, writes=cls.writes_files,
@@ -293,6 +296,23 @@ def plan_run(graph: Graph, *, frames: range | None = None, chunk: int = 64,
     if check_frames:
         check_run_frames(plan)
     return plan
+
+
+def _read_outputs(graph: Graph, nodes: dict[str, Node], targets: list[str]) -> dict[str, list[str]]:
+    """Per node that `skips_unread_outputs` and has outputs nobody reads: the outputs some edge
+    reads (sorted). A target's outputs are all read (the run returns them)."""
+    read: dict[str, set[str]] = {}
+    for nid in graph.topological_order():
+        for port, sources in graph.upstream_lists(nid).items():
+            for src in sources:
+                read.setdefault(src.node, set()).add(src.port)
+    out = {}
+    for nid, node in nodes.items():
+        if node.skips_unread_outputs and nid not in targets:
+            ports = read.get(nid, set())
+            if ports != set(node.outputs):
+                out[nid] = sorted(ports)
+    return out
 
 
 def check_run_frames(plan: Plan) -> None:

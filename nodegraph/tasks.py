@@ -222,7 +222,7 @@ def _compute(spec: TaskSpec, deps: Sequence[TaskResult]) -> dict[str, PortType]:
         else:
             inputs[slot.port] = value
     values = execute(node, inputs, range(*spec.frames), range(*spec.full_frames), progress_callback(spec.progress, spec.node, spec.out_frames),
-                     seed=task_seed(spec.key), device=spec.device)
+                     seed=task_seed(spec.key), device=spec.device, wanted=spec.description.get("outputs"))
     return _trim(node, values, spec.frames, spec.out_frames)
 
 

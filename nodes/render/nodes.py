@@ -61,6 +61,7 @@ class Render(Node):
     version = 1
     kind = FRAMEWISE
     resources = {"gpu": 1}
+    skips_unread_outputs = True  # the buffers only when an edge reads them
 
     class Params(NodeParams):
         supersample: int = Param(2, ge=1, le=4, description="Render at s times the camera's size and "
@@ -131,10 +132,13 @@ class Render(Node):
                 images.append(out.image.clamp_min(0).cpu().numpy())
                 tri = torch.where(out.triangle >= 0, torch.as_tensor(keep, device=device)[out.triangle.clamp_min(0)],
                                   out.triangle)
-                buffers.append(torch.cat([out.depth[..., None], tri[..., None].to(dt), out.barycentrics],
-                                         -1).cpu().numpy())
+                if self.wants("buffers"):
+                    buffers.append(torch.cat([out.depth[..., None], tri[..., None].to(dt), out.barycentrics],
+                                             -1).cpu().numpy())
                 self.progress(stop / frames, f"rendered {stop}/{frames} frames")
-        return {"images": ImageSequence(np.concatenate(images).astype(np.float32), ["R", "G", "B"], fps=mesh.fps,
-                                        colour_space="linear"),
-                "buffers": ImageSequence(np.concatenate(buffers).astype(np.float32), list(BUFFER_CHANNELS),
-                                         fps=mesh.fps, colour_space="linear")}
+        out = {"images": ImageSequence(np.concatenate(images).astype(np.float32), ["R", "G", "B"], fps=mesh.fps,
+                                       colour_space="linear")}
+        if buffers:
+            out["buffers"] = ImageSequence(np.concatenate(buffers).astype(np.float32), list(BUFFER_CHANNELS),
+                                           fps=mesh.fps, colour_space="linear")
+        return out

@@ -145,14 +145,17 @@ def _check_reference(reference: MeshSequence, mesh: MeshSequence) -> np.ndarray:
     return reference.vertices[0].astype(np.float64)
 
 
-def _outputs(mesh: MeshSequence, matrices: np.ndarray) -> dict:
-    """Build the `rigid` and `stabilized` outputs from skull-to-world matrices (F, 4, 4).
+def _outputs(node: Node, mesh: MeshSequence, matrices: np.ndarray) -> dict:
+    """Build the `rigid` and `stabilized` outputs from skull-to-world matrices (F, 4, 4); the
+    stabilized mesh only when an edge reads it (`Node.skips_unread_outputs`).
 
     The stabilized mesh is multiplied in float32 (`stabilize_vertices`: a few ulp, ~1e-6 cm at
     head scale, from the float64 product; no (F, V, 3) float64 temporaries): v2 of the nodes."""
-    stabilized = stabilize_vertices(mesh.vertices, np.asarray(matrices, np.float64))
-    return {"rigid": RigidSequence(np.ascontiguousarray(matrices, np.float64)),
-            "stabilized": dataclasses.replace(mesh, vertices=stabilized)}
+    out: dict = {"rigid": RigidSequence(np.ascontiguousarray(matrices, np.float64))}
+    if node.wants("stabilized"):
+        stabilized = stabilize_vertices(mesh.vertices, np.asarray(matrices, np.float64))
+        out["stabilized"] = dataclasses.replace(mesh, vertices=stabilized)
+    return out
 
 
 _FIT_BLOCK_FRAMES = 4  # frames per fit_rigid call of Procrustes (see Procrustes.run)
@@ -201,6 +204,7 @@ class ThreePoint(Node):
     type_name = "rigid.ThreePoint"
     version = 2  # v2: stabilized multiplied in float32 (see _outputs)
     kind = FRAMEWISE
+    skips_unread_outputs = True  # the stabilized mesh only when read (see _outputs)
 
     class Params(NodeParams):
         vertices: list[Index] = Param([], description="Three distinct vertex indices; empty = three "
@@ -256,7 +260,7 @@ class ThreePoint(Node):
                                      f"{quality[bad[0]]:.2e} < {_MIN_QUALITY:g}) at frame "
                                      f"{self.frames.start + int(bad[0])}")
         frames = three_point_frames(triples, min_quality=_MIN_QUALITY)
-        return _outputs(mesh, frames @ invert_rigid(ref_frame))
+        return _outputs(self, mesh, frames @ invert_rigid(ref_frame))
 
 
 class Procrustes(Node):
@@ -271,6 +275,7 @@ class Procrustes(Node):
     type_name = "rigid.Procrustes"
     version = 2  # v2: stabilized multiplied in float32 (see _outputs)
     kind = FRAMEWISE
+    skips_unread_outputs = True  # the stabilized mesh only when read (see _outputs)
 
     class Params(NodeParams):
         group: str = Param("rigid", description="Vertex group fitted; \"\" = all vertices.")
@@ -295,7 +300,7 @@ class Procrustes(Node):
             b = min(mesh.num_frames, a + _FIT_BLOCK_FRAMES)
             points = mesh.vertices[a:b] if self.params.group == "" else mesh.vertices[a:b, idx]  # no gather for all
             matrices[a:b] = fit_rigid(src, points.astype(np.float64)).matrix()
-        return _outputs(mesh, matrices)
+        return _outputs(self, mesh, matrices)
 
 
 class ICP(Node):
@@ -312,6 +317,7 @@ class ICP(Node):
     type_name = "rigid.ICP"
     version = 2  # v2: stabilized multiplied in float32 (see _outputs)
     kind = FRAMEWISE
+    skips_unread_outputs = True  # the stabilized mesh only when read (see _outputs)
 
     class Params(NodeParams):
         group: str = Param("rigid", description="Vertex group of each frame that is aligned; "
@@ -360,4 +366,4 @@ class ICP(Node):
                             robust_scale_cm=p.robust_scale_cm, loss=p.loss,
                             tolerance_cm=p.tolerance_cm, tree=cKDTree(target),
                             workers=p.workers, progress=self.progress)
-        return _outputs(mesh, invert_rigid(result.matrices))
+        return _outputs(self, mesh, invert_rigid(result.matrices))

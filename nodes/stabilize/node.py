@@ -109,6 +109,7 @@ class ModePursuit(Node):
     # Imported in the runner's preload thread while the capture is read: torch, the solver, and
     # the numba kernels of robust_kernels.py loaded from numba's cache (preload_kernels.py).
     preload = ("torch", "nodes.stabilize.mode_pursuit", "nodes.stabilize.preload_kernels")
+    skips_unread_outputs = True
     Params = ModePursuitParams
 
     @classmethod
@@ -172,6 +173,7 @@ class ModePursuit(Node):
             noise_multiple=p.noise_multiple, min_width=p.min_width_cm,
             polish_iterations=p.polish_iterations, still_refinement=p.still_refinement,
             device=p.device, compile=p.compile, progress=self.progress)
-        stabilized = stabilize_vertices(mesh.vertices, result.matrices)
-        return {"rigid": RigidSequence(np.ascontiguousarray(result.matrices, np.float64)),
-                "stabilized": dataclasses.replace(mesh, vertices=stabilized)}
+        out: dict = {"rigid": RigidSequence(np.ascontiguousarray(result.matrices, np.float64))}
+        if self.wants("stabilized"):  # not computed when no edge reads it (skips_unread_outputs)
+            out["stabilized"] = dataclasses.replace(mesh, vertices=stabilize_vertices(mesh.vertices, result.matrices))
+        return out

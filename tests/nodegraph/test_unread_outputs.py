@@ -1,0 +1,124 @@
+"""Outputs no edge reads are not computed by a node that `skips_unread_outputs`, and the cache
+never hands a later run an entry without an output it reads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nodegraph import FRAMEWISE, Graph, In, Node, NodeError, Out, ParamSequence, run
+from nodegraph.schedule import plan_run
+from nodegraph.node import execute
+
+COMPUTED: list[str] = []  # the outputs the probes computed, in order
+
+
+def _column(values: np.ndarray) -> ParamSequence:
+    return ParamSequence(values[:, None].astype(np.float64), ["v"])
+
+
+class SplitProbe(Node):
+    """Doubles and squares its values; computes only the outputs read."""
+
+    type_name = "test.SplitProbe"
+    kind = FRAMEWISE
+    skips_unread_outputs = True
+
+    values = In(ParamSequence)
+    double = Out(ParamSequence)
+    square = Out(ParamSequence)
+
+    def run(self, values: ParamSequence) -> dict:
+        x = values.values[:, 0]
+        out = {}
+        for name, value in (("double", 2.0 * x), ("square", x * x)):
+            if self.wants(name):
+                COMPUTED.append(name)
+                out[name] = _column(value)
+        return out
+
+
+class LazyWithoutOptIn(Node):
+    """Leaves out an output without declaring `skips_unread_outputs` (an error)."""
+
+    type_name = "test.LazyWithoutOptIn"
+    kind = FRAMEWISE
+
+    values = In(ParamSequence)
+    double = Out(ParamSequence)
+    square = Out(ParamSequence)
+
+    def run(self, values: ParamSequence) -> dict:
+        return {"double": _column(2.0 * values.values[:, 0])}
+
+
+def _graph(read: tuple[str, ...], probe: str = "test.SplitProbe") -> Graph:
+    g = Graph()
+    ramp = g.add("test.Ramp", id="ramp", num_frames=6, start=1.0, slope=1.0)
+    split = g.add(probe, id="split")
+    g.connect(ramp["values"], split["values"])
+    for port in read:
+        total = g.add("test.Total", id=f"total_{port}")
+        g.connect(split[port], total["values"])
+    return g
+
+
+def _totals(result) -> dict[str, float]:
+    return {node: float(ports["total"].value) for node, ports in result.outputs.items()}
+
+
+def test_unread_output_is_not_computed_and_reads_are_right(tmp_path):
+    COMPUTED.clear()
+    result = run(_graph(("double",)), scheduler="sync", cache=False)
+    assert result.ok
+    assert COMPUTED == ["double"]
+    assert _totals(result) == {"total_double": 2.0 * 21.0}  # 2 x (1 + ... + 6)
+
+
+def test_cache_entry_without_an_output_is_not_reused(tmp_path):
+    cache = tmp_path / "cache"
+    COMPUTED.clear()
+    assert run(_graph(("double",)), scheduler="sync", cache=cache).ok
+    assert COMPUTED == ["double"]
+    COMPUTED.clear()
+    both = run(_graph(("double", "square")), scheduler="sync", cache=cache)
+    assert both.ok
+    assert sorted(COMPUTED) == ["double", "square"]  # recomputed: the first entry lacks `square`
+    assert _totals(both) == {"total_double": 42.0, "total_square": 91.0}
+    COMPUTED.clear()
+    again = run(_graph(("double",)), scheduler="sync", cache=cache)  # its own entry is still there
+    assert again.ok and COMPUTED == [] and _totals(again) == {"total_double": 42.0}
+
+
+def test_plan_keys_differ_by_the_outputs_read():
+    one = plan_run(_graph(("double",)))
+    two = plan_run(_graph(("double", "square")))
+    task_one = next(t for t in one.tasks.values() if t.node == "split")
+    task_two = next(t for t in two.tasks.values() if t.node == "split")
+    assert task_one.description["outputs"] == ["double"]
+    assert "outputs" not in task_two.description  # all read: the key of a node that computes all
+    assert task_one.key != task_two.key
+
+
+def test_a_target_returns_every_output():
+    COMPUTED.clear()
+    result = run(_graph(("double",)), scheduler="sync", cache=False, outputs=["split"])
+    assert result.ok and sorted(COMPUTED) == ["double", "square"]
+    assert set(result.outputs["split"]) == {"double", "square"}
+
+
+def test_leaving_out_an_output_needs_the_opt_in():
+    with pytest.raises(NodeError, match="returned ports"):
+        execute(LazyWithoutOptIn(), {"values": _column(np.arange(3.0))}, range(3), range(3), wanted=["double"])
+
+
+def test_wanted_output_left_out_is_an_error():
+    node = SplitProbe()
+    node.run = lambda values: {}  # type: ignore[method-assign]
+    with pytest.raises(NodeError, match="wanted \\['double'\\]"):
+        execute(node, {"values": _column(np.arange(3.0))}, range(3), range(3), wanted=["double"])
+
+
+def test_unknown_wanted_output_is_an_error():
+    with pytest.raises(NodeError, match="unknown output"):
+        execute(SplitProbe(), {"values": _column(np.arange(3.0))}, range(3), range(3), wanted=["cube"])
