@@ -340,7 +340,8 @@ def check_rows(photos: list[str] | None = None) -> None:
                   [r for r in scored if r[0] == photo], 6))
     print(row("all", scored, 6))
     if set(photos) & set(HAND_ANNOTATIONS):
-        print(row("all but the hand-annotated photos", [r for r in scored if r[0] not in HAND_ANNOTATIONS], 6))
+        if set(photos) - set(HAND_ANNOTATIONS):  # (a table of only hand-annotated photos has no such row)
+            print(row("all but the hand-annotated photos", [r for r in scored if r[0] not in HAND_ANNOTATIONS], 6))
         print("\n" + header.format("for comparison: the network's read of the clean photo as every reference"))
         for photo in photos:
             if photo in HAND_ANNOTATIONS:
