@@ -2,13 +2,19 @@
 appearance, rigid and expression stages, and the synthetic accuracy table.
 
 Usage: nice python bench/fit.py [--frames 50] [--size 256] [--seed 0] [--rounds 4] [--iterations 10]
-Runs on the CPU (this machine has no GPU); torch threads as torch chooses.
+                                [--workers 2]
+Runs on the CPU (this machine has no GPU). fit.RigidPose and fit.Expression solve on one torch
+thread (`torch_threads = 1`) in batches of 8 frames, so their rows are one core's seconds per frame;
+with `--workers N` (default 2) they run again as the runner runs them, chunks of 8 frames on N threads
+side by side, and the wall seconds per frame of that run are printed too ("N workers": what a graph gets
+on N cores; the results are the same, tests/nodes/fit/test_batch_independence.py).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from concurrent.futures import ThreadPoolExecutor
 import tempfile
 import time
 from pathlib import Path
@@ -27,6 +33,27 @@ from tests.support.synthetic import random_face_parameters, render_truth_plates 
 def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     r = np.einsum("fij,fkj->fik", a, b)
     return np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+
+def chunked_seconds(node: type, params: dict, frames: int, workers: int, chunk: int = 8, **inputs: object) -> float:
+    """Wall seconds per frame of `node` on chunks of `chunk` frames run on `workers` threads side by
+    side (as the runner's threads scheduler runs a framewise node): per-frame inputs (list ports too)
+    are sliced to each chunk."""
+    from nodegraph import PortType
+
+    def part(value: object, a: int, b: int) -> object:
+        if isinstance(value, list):
+            return [part(v, a, b) for v in value]
+        return value.slice_frames(a, b) if isinstance(value, PortType) and value.per_frame else value
+
+    def one(a: int) -> None:
+        b = min(frames, a + chunk)
+        run_node(node, params, frames=range(a, b), **{k: part(v, a, b) for k, v in inputs.items()})
+
+    t = time.perf_counter()
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(one, range(0, frames, chunk)))
+    return (time.perf_counter() - t) / frames
 
 
 def main() -> None:
@@ -60,6 +87,8 @@ def main() -> None:
     ap.add_argument("--identity-points", type=int, default=468, choices=[68, 468],
                     help="landmarks the identity is estimated from (as graphs/fit_video.json: 468, the 68 then 400 more face-mesh points)")
     ap.add_argument("--iris", action="store_true", help="the iris centres into fit.Expression (eyeLook weights)")
+    ap.add_argument("--workers", type=int, default=2, help="also time fit.RigidPose and fit.Expression as chunks "
+                    "of 8 frames on this many threads side by side (0: skip)")
     args = ap.parse_args()
     model = load_face_model()
     cam = Camera.from_fov(args.size, args.size, 30.0)
@@ -131,9 +160,15 @@ def main() -> None:
     expr = run_node(Expression, fit_params, frames=range(f), model=fitted, pose=rigid["pose"], **common)
     times["expression"] = (time.perf_counter() - t) / f
     cpu["expression"] = (time.process_time() - c) / f
+    if args.workers > 0:
+        w = args.workers
+        times[f"rigid, {w} workers"] = chunked_seconds(RigidPose, fit_params, f, w, model=fitted, **common)
+        times[f"expression, {w} workers"] = chunked_seconds(Expression, fit_params, f, w, model=fitted,
+                                                            pose=rigid["pose"], **common)
+        times[f"rigid + expression, {w} workers"] = times[f"rigid, {w} workers"] + times[f"expression, {w} workers"]
     print(f"CPU (no GPU), {f} frames of {args.size}x{args.size}:")
     for k, v in times.items():
-        print(f"  {k:30s} {v:7.3f} s" + ("" if "once" in k else " / frame")
+        print(f"  {k:34s} {v:7.3f} s" + ("" if "once" in k else " / frame")
               + (f" (process CPU {cpu[k]:.3f} s / frame)" if k in cpu else ""))
     v = expr["fitted"].values
     ok = expr["failed"].values[:, 0] == 0
