@@ -420,6 +420,9 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None, cache: Cache | Non
     changed_ports = [port_of.get(text, text) for text in sorted(set(old_inputs) | set(new_inputs))
                      if old_inputs.get(text) != new_inputs.get(text)]
     reasons.extend(f"upstream '{port}' changed" for port in dict.fromkeys(changed_ports))
+    if last.get("outputs") != now.get("outputs"):
+        reasons.append(f"outputs read changed ({_outputs_text(last.get('outputs'))} -> "
+                       f"{_outputs_text(now.get('outputs'))}: the node computes only the outputs an edge reads)")
     if last.get("frames") != now["frames"] and not reasons:
         reasons.append(f"frames changed ({last.get('frames')} -> {now['frames']})")
     if not reasons and task.writes and task.stale_files:
@@ -427,6 +430,11 @@ def explain_miss(task: TaskPlan, last: dict[str, Any] | None, cache: Cache | Non
     if not reasons and task.writes:
         return "written files not recorded (written by an older nodegraph, or the record was lost)"
     return "; ".join(reasons) if reasons else "entry missing from the cache (evicted or corrupt)"
+
+
+def _outputs_text(outputs: list[str] | None) -> str:
+    """A task description's "outputs" (None: every output computed) as text."""
+    return "all" if outputs is None else ", ".join(outputs)
 
 
 def _slot_ports(task: TaskPlan, count: int) -> dict[str, str]:

@@ -122,3 +122,14 @@ def test_wanted_output_left_out_is_an_error():
 def test_unknown_wanted_output_is_an_error():
     with pytest.raises(NodeError, match="unknown output"):
         execute(SplitProbe(), {"values": _column(np.arange(3.0))}, range(3), range(3), wanted=["cube"])
+
+
+def test_explain_names_the_outputs_read(tmp_path):
+    from nodegraph.explain import explain
+
+    cache = tmp_path / "cache"
+    assert run(_graph(("double",)), scheduler="sync", cache=cache, outputs=["split"]).ok  # a target: all outputs
+    rows = {row["node"]: row for row in explain(_graph(("double",)), cache=cache)}
+    assert not rows["split"]["hit"]
+    assert rows["split"]["reason"] == ("outputs read changed (all -> double: the node computes only the "
+                                       "outputs an edge reads)")
