@@ -227,6 +227,7 @@ class Expression(Node):
     kind = FRAMEWISE
     resources = {"gpu": 1}
     torch_threads = 1  # the same answer for any thread count (issue 30): chunks run side by side
+    skips_unread_outputs = True  # the mesh only when an edge reads it
     Params = _ExpressionParams
 
     landmarks = In(Landmarks2D, many=True, doc="(F, 68, 2) plate landmarks, one per camera.")
@@ -270,11 +271,13 @@ class Expression(Node):
             out["weights"][through] = start[through, 12:]
             out["failed"] = out["failed"] & ~through
         values = np.concatenate([out["pose"], out["weights"]], 1)
-        rot = out["pose"][:, :9].reshape(-1, 3, 3)
-        verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \
-            + np.nan_to_num(out["pose"][:, None, 9:12])
-        verts[out["failed"]] = model.neutral  # meshes must be finite: failed frames hold the unposed neutral
-        return {"fitted": ParamSequence(values, list(POSE_NAMES) + list(model.expression_names)),
-                "mesh": MeshSequence(verts.astype(np.float32), np.asarray(model.faces)),
-                "energy": ParamSequence(out["energy"][:, None], ["energy"]),
-                "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
+        result = {"fitted": ParamSequence(values, list(POSE_NAMES) + list(model.expression_names)),
+                  "energy": ParamSequence(out["energy"][:, None], ["energy"]),
+                  "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
+        if self.wants("mesh"):  # (F, V, 3): 1,800 frames of the ICT head are 560 MB; not made when no edge reads it
+            rot = out["pose"][:, :9].reshape(-1, 3, 3)
+            verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \
+                + np.nan_to_num(out["pose"][:, None, 9:12])
+            verts[out["failed"]] = model.neutral  # meshes must be finite: failed frames hold the unposed neutral
+            result["mesh"] = MeshSequence(verts.astype(np.float32), np.asarray(model.faces))
+        return result
