@@ -303,7 +303,7 @@ def _read_outputs(graph: Graph, nodes: dict[str, Node], targets: list[str]) -> d
     reads (sorted). A target's outputs are all read (the run returns them)."""
     read: dict[str, set[str]] = {}
     for nid in graph.topological_order():
-        for port, sources in graph.upstream_lists(nid).items():
+        for sources in graph.upstream_lists(nid).values():
             for src in sources:
                 read.setdefault(src.node, set()).add(src.port)
     out = {}
