@@ -50,12 +50,20 @@ def _is_video(path: str) -> bool:
 
 
 def network_images(images: ImageSequence, where: str = "images") -> np.ndarray:
-    """(F, H, W, 3) sRGB-encoded RGB in [0, 1] for the networks (grey is replicated)."""
+    """(F, H, W, 3) sRGB-encoded RGB in [0, 1] for the networks (grey is replicated); never write into it.
+
+    Frames already in [0, 1] (8/16-bit files and video, the usual case) come back as a
+    view of the input, not a copy: a sequence node (TrackFaces) gets the whole shot, and a clipped
+    copy of it was one more copy of the video (fit_video.json on 96 frames of 512^2: the
+    process's memory after TrackFaces 1,266 -> 968 MB). Other frames are clipped into a new
+    array (NaN stays NaN)."""
     idx = images.colour_channels()
     if not idx:
         raise InputError(where, f"expected RGB or grey images, found channels {images.channels}")
     pixels = images.to_srgb().rgb()  # consecutive channels are a view (a list index copied 48 frames of 512^2 in 0.5 s)
-    return np.clip(pixels, 0.0, 1.0, out=np.empty(pixels.shape, np.float32))  # one pass into a new array
+    if not (pixels.dtype == np.float32 and pixels.size and pixels.min() >= 0.0 and pixels.max() <= 1.0):
+        pixels = np.clip(pixels, 0.0, 1.0, out=np.empty(pixels.shape, np.float32))  # one pass into a new array
+    return pixels  # may be the upstream node's value (its callers only read it; torch warns on read-only arrays)
 
 
 class LoadFrames(Node):

@@ -90,3 +90,22 @@ def test_network_images_are_the_colour_channels_in_srgb_clipped(channels, colour
     want = np.repeat(want, 3, -1) if len(colour) == 1 else want
     assert got.dtype == np.float32 and got.flags.c_contiguous and got.shape == (2, 5, 7, 3)
     np.testing.assert_array_equal(got, np.clip(want, 0.0, 1.0))
+
+
+@pytest.mark.parametrize("channels", [["R", "G", "B"], ["A", "R", "G", "B", "Z"], ["Y"]])
+def test_network_images_in_range_are_not_copied(channels):
+    """Frames already in [0, 1] (8-bit files, video) are passed as a view of the input, not a
+    whole-shot copy (TrackFaces receives every frame); the values are the same as clipped."""
+    from nodes.landmarks.nodes import network_images
+
+    rng = np.random.default_rng(4)
+    pixels = rng.random((3, 6, 5, len(channels))).astype(np.float32)
+    seq = ImageSequence(pixels, channels=channels, colour_space="srgb")
+    got = network_images(seq)
+    colour = [i for i, name in enumerate(channels) if name not in ("A", "Z")]
+    want = np.repeat(pixels[..., colour], 3, -1) if len(colour) == 1 else pixels[..., colour]
+    np.testing.assert_array_equal(got, want)
+    assert np.shares_memory(got, pixels) == (len(colour) == 3)  # grey is replicated: a new array
+    pixels[0, 0, 0, colour[0]] = 1.5  # one value out of range: clipped into a copy
+    clipped = network_images(ImageSequence(pixels, channels=channels, colour_space="srgb"))
+    assert not np.shares_memory(clipped, pixels) and float(clipped.max()) == 1.0
