@@ -199,6 +199,15 @@ class Node:
             self._device = "cuda" if torch.cuda.is_available() else "cpu"
         return self._device
 
+    def import_first(self) -> tuple[str, ...]:
+        """Modules `run` will import that must be imported before the run's tasks start, on the
+        runner's own thread (sync and threads schedulers). For C extensions whose library
+        initialisers wait for the GIL inside the dynamic loader (usd-core's `pxr`): imported
+        from a task thread while another task thread holds the GIL and asks the loader (numpy's
+        temporary elision calls `dladdr`), the two wait on each other forever
+        (`video_to_animation.json` hung once so, its USD and glTF writers side by side)."""
+        return ()
+
     def wants(self, port: str) -> bool:
         """Whether this run must return output `port` (see `skips_unread_outputs`)."""
         return port in self.wanted_outputs

@@ -33,7 +33,7 @@ from .progress import Reporter, progress_mode, warnings_as_events
 from .plan_names import TaskName
 from .schedule import Plan, check_run_frames, plan_run
 from .staging import commit, discard, new_token
-from .tasks import IN_PROCESS, OK_STATUSES, TaskResult, TaskSpec, combine, preload, wait_for_preloads
+from .tasks import IN_PROCESS, OK_STATUSES, TaskResult, TaskSpec, combine, import_now, preload, wait_for_preloads
 
 __all__ = ["TaskSpec", "TaskResult", "RunResult", "run", "explain", "check_scheduler", "SCHEDULERS",
            "CONNECT_TIMEOUT_S"]
@@ -189,7 +189,9 @@ def _run(graph: Graph, frames: range | None, chunk: int, scheduler: Any, store: 
                      and plan.nodes[plan.tasks[n].node].resources}
         writers = _writing(plan, names)
         if scheduler in IN_PROCESS:
-            preload([m for n in names if not plan.tasks[n].hit for m in plan.nodes[plan.tasks[n].node].preload])
+            running = [plan.nodes[plan.tasks[n].node] for n in names if not plan.tasks[n].hit]
+            import_now([m for node in dict.fromkeys(running) for m in node.import_first()])  # before any task thread
+            preload([m for node in running for m in node.preload])
         try:
             metas, results, staged = execute(dsk, names, value_names, scheduler, reporter, workers,
                                              {n: dict(plan.nodes[plan.tasks[n].node].resources) for n in gpu_tasks})

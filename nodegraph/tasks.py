@@ -35,7 +35,8 @@ from .staging import StagedFile, publish, staging
 from .values import Files
 
 __all__ = ["TaskSpec", "TaskResult", "OK_STATUSES", "IN_PROCESS", "combine", "compute_task",
-           "compute_logged_task", "load_task", "task_meta", "task_staged", "in_process_run", "preload"]
+           "compute_logged_task", "load_task", "task_meta", "task_staged", "in_process_run", "preload",
+           "import_now"]
 
 OK_STATUSES = ("executed", "cached", "restored")
 """Statuses of a task that has values."""
@@ -312,6 +313,19 @@ def wait_for_preloads(timeout: float = PRELOAD_WAIT_S) -> None:
     """
     for thread in _PRELOADS:
         thread.join(timeout)
+
+
+def import_now(modules: Sequence[str]) -> None:
+    """Import `modules` on this thread, now (`Node.import_first`); an import that fails here is
+    left for the node itself to report."""
+    import importlib
+
+    for name in dict.fromkeys(modules):
+        if name not in sys.modules:
+            try:
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001 - the node's own import raises it properly
+                pass
 
 
 def preload(modules: Sequence[str]) -> None:

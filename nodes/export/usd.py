@@ -26,7 +26,11 @@ from nodegraph.files import atomic_path
 from ..geometry.mesh import vertex_normals
 from .scene import SceneWriter, SceneWriterParams, blendshapes, head_quaternions, head_transforms
 
-__all__ = ["write_usd_animation", "UsdAnimation"]
+__all__ = ["write_usd_animation", "UsdAnimation", "USD_MODULES"]
+
+
+USD_MODULES = ("pxr.Gf", "pxr.Sdf", "pxr.Tf", "pxr.Usd", "pxr.UsdGeom", "pxr.UsdSkel", "pxr.Vt")
+"""What `write_usd_animation` imports (`Node.import_first` of the USD writer)."""
 
 
 def write_usd_animation(path: str | Path, model: FaceModel, performance: Performance,
@@ -128,6 +132,9 @@ class UsdAnimation(SceneWriter):
         suffixes = (".usd", ".usdc", ".usda")
         path: str = Param(..., output_file=True, description="Destination .usd / .usdc (binary) or .usda "
                           "(text, about 3x larger); '' = write nothing.")
+
+    def import_first(self) -> tuple[str, ...]:
+        return USD_MODULES if self.params.path else ()
 
     def write(self, path: Path, model: FaceModel, performance: Performance, camera: Camera | None) -> None:
         write_usd_animation(path, model, performance, camera, asymmetry=self.params.asymmetry_shapes,

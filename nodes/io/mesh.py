@@ -38,7 +38,7 @@ from nodegraph.files import atomic_path, files_value
 from ._files import (check_frame_range, check_no_missing_files, expand_frame_pattern, find_frame_numbers, format_of,
                      frame_token, frame_where, npz_keys, npz_shape, pattern_files, read_npz_array, read_npz_rows)
 from .mesh_frame import MAX_COORDINATE_CM, MeshFrame, check_frame, check_magnitude, check_mesh_file, fan_triangulate
-from .usd import load_usd_mesh, save_usd_mesh, usd_mesh_frame_count
+from .usd import USD_MODULES, load_usd_mesh, save_usd_mesh, usd_mesh_frame_count
 
 __all__ = [
     "read_obj", "write_obj", "read_ply", "write_ply",
@@ -578,6 +578,10 @@ class SaveMeshSequence(Node):
 
     mesh = In(MeshSequence, doc="The sequence to write.")
     files = Out(Files, doc="Written paths and their sha256.")
+
+    def import_first(self) -> tuple[str, ...]:
+        """USD's modules when writing a .usd file (imported before the tasks: `Node.import_first`)."""
+        return USD_MODULES if MESH_FORMATS.get(Path(self.params.path).suffix.lower()) == "usd" else ()
 
     def run(self, mesh: MeshSequence) -> dict[str, Files]:
         p = self.params

@@ -26,7 +26,7 @@ from nodegraph.files import atomic_path
 from ._files import check_frame_range
 from .mesh_frame import MeshFrame, check_frame, fan_triangulate
 
-__all__ = ["usd_mesh_frame_count", "load_usd_mesh", "save_usd_mesh"]
+__all__ = ["usd_mesh_frame_count", "load_usd_mesh", "save_usd_mesh", "USD_MODULES"]
 
 _GROUP_FAMILY = "vertexGroups"
 _GROUP_NAME_KEY = "nodegraph:groupName"
@@ -165,6 +165,10 @@ def load_usd_mesh(path: str, frames: range, prim: str = "", fps: float = 30.0) -
         out[i] = vertices
     return MeshSequence(vertices=out, faces=faces, uv=uv, uv_faces=uv_faces,
                         groups=_usd_groups(mesh), fps=fps)
+
+
+USD_MODULES = ("pxr.Sdf", "pxr.Tf", "pxr.Usd", "pxr.UsdGeom", "pxr.Vt")
+"""What `save_usd_mesh` imports (`Node.import_first` of io.SaveMeshSequence for a .usd path)."""
 
 
 def save_usd_mesh(path: str, mesh: MeshSequence, times: range, prim: str = "/mesh") -> None:

@@ -1,12 +1,13 @@
 """Outputs no edge reads are not computed by a node that `skips_unread_outputs`, and the cache
-never hands a later run an entry without an output it reads."""
+never hands a later run an entry without an output it reads; `Node.import_first` modules are
+imported by the runner's thread before the tasks."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from nodegraph import FRAMEWISE, Graph, In, Node, NodeError, Out, ParamSequence, run
+from nodegraph import FRAMEWISE, Graph, In, Node, NodeError, NodeParams, Out, Param, ParamSequence, run
 from nodegraph.schedule import plan_run
 from nodegraph.node import execute
 
@@ -133,3 +134,42 @@ def test_explain_names_the_outputs_read(tmp_path):
     assert not rows["split"]["hit"]
     assert rows["split"]["reason"] == ("outputs read changed (all -> double: the node computes only the "
                                        "outputs an edge reads)")
+
+
+class ImportFirstProbe(Node):
+    """Imports `module` in run; names it in `import_first`."""
+
+    type_name = "test.ImportFirstProbe"
+    kind = FRAMEWISE
+
+    class Params(NodeParams):
+        module: str = Param("", description="module imported first")
+
+    values = In(ParamSequence)
+    seen = Out(ParamSequence)
+
+    def import_first(self) -> tuple[str, ...]:
+        return (self.params.module,)
+
+    def run(self, values: ParamSequence) -> dict:
+        import importlib
+        import sys
+
+        already = self.params.module in sys.modules  # imported before this task ran
+        module = importlib.import_module(self.params.module)
+        COMPUTED.append(f"{already} {module.THREAD}")
+        return {"seen": values}
+
+
+def test_import_first_modules_are_imported_on_the_runner_thread_before_the_tasks(tmp_path, monkeypatch):
+    # a C extension whose initialisers wait for the GIL inside the loader (pxr) must not be
+    # imported by a task thread while another holds the GIL (numpy's dladdr): the runner imports it
+    (tmp_path / "import_first_probe_mod.py").write_text("import threading\nTHREAD = threading.current_thread().name\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    g = Graph()
+    ramp = g.add("test.Ramp", id="ramp", num_frames=4)
+    probe = g.add("test.ImportFirstProbe", id="probe", module="import_first_probe_mod")
+    g.connect(ramp["values"], probe["values"])
+    COMPUTED.clear()
+    assert run(g, scheduler="threads", cache=False, chunk=2).ok
+    assert COMPUTED == ["True MainThread"] * 2
