@@ -302,10 +302,8 @@ def _read_outputs(graph: Graph, nodes: dict[str, Node], targets: list[str]) -> d
     """Per node that `skips_unread_outputs` and has outputs nobody reads: the outputs some edge
     reads (sorted). A target's outputs are all read (the run returns them)."""
     read: dict[str, set[str]] = {}
-    for nid in graph.topological_order():
-        for sources in graph.upstream_lists(nid).values():
-            for src in sources:
-                read.setdefault(src.node, set()).add(src.port)
+    for src, _ in graph.edges:
+        read.setdefault(src.node, set()).add(src.port)
     out = {}
     for nid, node in nodes.items():
         if node.skips_unread_outputs and nid not in targets:

@@ -316,8 +316,8 @@ def wait_for_preloads(timeout: float = PRELOAD_WAIT_S) -> None:
 
 
 def import_now(modules: Sequence[str]) -> None:
-    """Import `modules` on this thread, now (`Node.import_first`); an import that fails here is
-    left for the node itself to report."""
+    """Import `modules` on this thread, now (`Node.import_first`; `preload` runs it on its own
+    thread); an import that fails here is left for the node itself to report."""
     import importlib
 
     for name in dict.fromkeys(modules):
@@ -336,17 +336,7 @@ def preload(modules: Sequence[str]) -> None:
     missing = [m for m in dict.fromkeys(modules) if m not in sys.modules]
     if not missing:
         return
-
-    def work() -> None:
-        import importlib
-
-        for name in missing:
-            try:
-                importlib.import_module(name)
-            except Exception:  # noqa: BLE001 - the node's own import raises it properly
-                pass
-
-    thread = threading.Thread(target=work, name="nodegraph-preload", daemon=True)
+    thread = threading.Thread(target=import_now, args=(missing,), name="nodegraph-preload", daemon=True)
     _PRELOADS[:] = [t for t in _PRELOADS if t.is_alive()] + [thread]
     thread.start()
 
