@@ -274,7 +274,7 @@ class Expression(Node):
         result = {"fitted": ParamSequence(values, list(POSE_NAMES) + list(model.expression_names)),
                   "energy": ParamSequence(out["energy"][:, None], ["energy"]),
                   "failed": ParamSequence(out["failed"].astype(np.float32)[:, None], ["failed"])}
-        if self.wants("mesh"):  # (F, V, 3): 1,800 frames of the ICT head are 560 MB; not made when no edge reads it
+        if self.wants("mesh"):  # (F, V, 3): 1,800 frames of the ICT head are 577 MB; not made when no edge reads it
             rot = out["pose"][:, :9].reshape(-1, 3, 3)
             verts = model.evaluate(np.nan_to_num(out["weights"])) @ np.swapaxes(np.nan_to_num(rot), 1, 2) \
                 + np.nan_to_num(out["pose"][:, None, 9:12])
